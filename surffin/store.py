@@ -1,0 +1,174 @@
+"""Processed zarr stores: written complete or not at all, read back with plain xarray.
+
+A store is written into a hidden temporary sibling (``.<name>.partial-<token>``)
+and renamed onto its final path only once everything, consolidated metadata
+included, is on disk. Anything at a store's final path is therefore complete;
+leftovers of a crashed or killed run carry names no reader mistakes for a store
+and are removed by the next write of the same store.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import uuid
+import warnings
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from surffin._version import __version__
+from surffin.errors import StoreError
+
+__all__ = ["DEFAULT_CHUNKS", "write_store", "open_store", "provenance", "clean_leftovers"]
+
+#: Default dask/zarr chunk sizes over the image dimensions; ``view`` is never split.
+DEFAULT_CHUNKS = {"y": 256, "x": 256}
+
+_PARTIAL = ".partial-"
+_RETIRED = ".retired-"
+
+
+def provenance(stage: str, parameters: Mapping | None = None, inputs: Mapping | None = None) -> dict:
+    """Attributes recording what made a store.
+
+    Parameters
+    ----------
+    stage : str
+        Name of the stage that made the store (``"ingest"``, ``"aoi"``, ...).
+    parameters : mapping, optional
+        The processing parameters of that stage (JSON-serialisable values).
+    inputs : mapping, optional
+        Description of the inputs (file names, sizes, checksums, ...).
+
+    Returns
+    -------
+    dict
+        ``surffin_version``, ``surffin_stage``, ``surffin_parameters``, ``surffin_inputs``.
+    """
+    return {
+        "surffin_version": __version__,
+        "surffin_stage": stage,
+        "surffin_parameters": dict(parameters or {}),
+        "surffin_inputs": dict(inputs or {}),
+    }
+
+
+def _leftovers(path: Path) -> list[Path]:
+    prefixes = (f".{path.name}{_PARTIAL}", f".{path.name}{_RETIRED}")
+    if not path.parent.is_dir():
+        return []
+    return [p for p in path.parent.iterdir() if p.name.startswith(prefixes)]
+
+
+def clean_leftovers(path: str | os.PathLike) -> list[Path]:
+    """Remove what an interrupted write of the store at ``path`` left behind.
+
+    Returns
+    -------
+    list of Path
+        The removed temporary folders.
+    """
+    removed = _leftovers(Path(path))
+    for leftover in removed:
+        shutil.rmtree(leftover, ignore_errors=True)
+    return removed
+
+
+def _chunking(ds: xr.Dataset, chunks: Mapping[str, int]) -> dict[str, int]:
+    wanted = {"view": -1, **{dim: size for dim, size in chunks.items() if dim != "view"}}
+    return {dim: size for dim, size in wanted.items() if dim in ds.dims}
+
+
+def _encoding(ds: xr.Dataset) -> dict[str, dict]:
+    # Noisy floats gain little from compression and write 2-4x slower with it
+    # (NUMERICS.md); masks and labels compress well and keep zarr's default.
+    return {
+        name: {"compressors": None}
+        for name, var in ds.variables.items()
+        if np.issubdtype(var.dtype, np.floating)
+    }
+
+
+def _strings_as_objects(ds: xr.Dataset) -> xr.Dataset:
+    # Fixed-width unicode has no zarr v3 specification; variable-length strings do.
+    fixed = {name: ds[name].astype(object) for name, var in ds.variables.items() if var.dtype.kind == "U"}
+    coords = {name: arr for name, arr in fixed.items() if name in ds.coords}
+    data = {name: arr for name, arr in fixed.items() if name not in ds.coords}
+    return ds.assign_coords(coords).assign(data)
+
+
+def write_store(
+    ds: xr.Dataset, path: str | os.PathLike, *, chunks: Mapping[str, int] | None = None
+) -> Path:
+    """Write ``ds`` as a zarr v3 store with consolidated metadata, atomically.
+
+    Parameters
+    ----------
+    ds : Dataset
+        numpy- or dask-backed; dask arrays are computed chunk by chunk while writing.
+    path : path-like
+        Final path of the store (conventionally ending in ``.zarr``).
+    chunks : mapping of str to int, optional
+        Chunk sizes per dimension (default :data:`DEFAULT_CHUNKS`); ``view`` is
+        always kept whole so that per-pixel fits see all views of a pixel at once.
+
+    Returns
+    -------
+    Path
+        The final path. An existing store there is replaced only after the new
+        one is complete.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    clean_leftovers(path)
+    ds = _strings_as_objects(ds).drop_encoding()
+    ds = ds.chunk(_chunking(ds, DEFAULT_CHUNKS if chunks is None else chunks))
+    partial = path.parent / f".{path.name}{_PARTIAL}{uuid.uuid4().hex[:12]}"
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
+            ds.to_zarr(partial, mode="w-", zarr_format=3, consolidated=True, encoding=_encoding(ds))
+        if path.exists():
+            retired = path.parent / f".{path.name}{_RETIRED}{uuid.uuid4().hex[:12]}"
+            os.replace(path, retired)
+            os.replace(partial, path)
+            shutil.rmtree(retired)
+        else:
+            os.replace(partial, path)
+    finally:
+        if partial.exists():
+            shutil.rmtree(partial, ignore_errors=True)
+    return path
+
+
+def open_store(path: str | os.PathLike, *, stage: str | None = None, chunks="auto") -> xr.Dataset:
+    """Open a processed store lazily, checking that it is one.
+
+    Parameters
+    ----------
+    path : path-like
+        The store's folder.
+    stage : str, optional
+        When given, the store must have been written by this stage.
+    chunks : optional
+        Passed to :func:`xarray.open_zarr`; the default keeps the stored chunks.
+
+    Raises
+    ------
+    StoreError
+        If nothing readable is there, or it was made by another stage.
+    """
+    path = Path(path)
+    if not (path / "zarr.json").is_file():
+        raise StoreError(f"{path}: no zarr store here (missing {path / 'zarr.json'}); run the stage that makes it")
+    try:
+        ds = xr.open_zarr(path, consolidated=True, chunks={} if chunks == "auto" else chunks)
+    except Exception as exc:  # zarr and xarray raise many types on damaged stores
+        raise StoreError(f"{path}: cannot open as a zarr store: {exc}") from exc
+    made_by = ds.attrs.get("surffin_stage")
+    if stage is not None and made_by != stage:
+        raise StoreError(f"{path}: expected a store made by stage {stage!r}, found one made by {made_by!r}")
+    return ds
