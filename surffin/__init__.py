@@ -19,6 +19,7 @@ from surffin.errors import (
 _LAZY = {
     "read_campaign": "surffin.campaign",
     "simulate_campaign": "surffin.simulate",
+    "fit_scattering": "surffin.scattering",
 }
 
 __all__ = [

@@ -1,0 +1,306 @@
+"""Per-pixel fit of the scattering model R(theta) = R0 cos((2 - 1/n) theta)^n (paper eq. 3).
+
+The kernel :func:`_fit_scattering` works on plain numpy arrays, vectorised over
+pixels. For fixed n the model is linear in R0, so R0 is eliminated (variable
+projection) and the least-squares problem becomes one-dimensional in n:
+
+    F(n) = sum R^2 - (sum R g)^2 / sum g^2,   g = cos(a theta)^n,  a = 2 - 1/n.
+
+A coarse grid over n brackets the global minimum (for n < 0.5 the model has an
+alias branch, and n = 0.5 is a stationary point of every pixel: NUMERICS.md);
+inside the bracket a safeguarded Newton iteration on F'(n) = 0 with the exact
+second derivative converges in a few steps, falling back to bisection whenever
+Newton would leave the bracket. cos and log cos come from tan, which numpy
+evaluates vectorised and which is accurate at small angles.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import xarray as xr
+
+__all__ = [
+    "fit_scattering",
+    "scattering_model",
+    "FIT_STATUS",
+    "DEFAULT_MIN_SPREAD",
+    "N_MAX",
+]
+
+#: Default minimum AOI spread (max - min over a pixel's valid views), radians.
+DEFAULT_MIN_SPREAD = float(np.deg2rad(10.0))
+#: Largest scattering coefficient searched (beyond it the surface is specular at the camera's resolution).
+N_MAX = 50.0
+_N_MIN = 0.5
+# Start grid evenly spaced in a = 2 - 1/n over (0, 2), closed by the upper bound.
+_START_GRID = np.append(1.0 / (2.0 - np.array([0.1, 0.35, 0.6, 0.85, 1.1, 1.35, 1.6, 1.85, 1.96])), N_MAX)
+_MAX_ITER = 40
+_BLOCK = 16384
+_FLOAT_OUTPUTS = ("R0", "n", "R0_sigma", "n_sigma", "rms")
+_TOL = 1e-12
+
+#: Meaning of the ``status`` codes of a fit.
+FIT_STATUS = {
+    0: "converged",
+    1: "fewer valid views than required",
+    2: "AOI spread below the minimum",
+    3: "not converged or optimum at the bound of n",
+    4: "no positive reflectance fit (R0 <= 0)",
+}
+
+
+def scattering_model(theta, r0, n):
+    """R(theta) = R0 cos((2 - 1/n) theta)^n, zero where (2 - 1/n) theta >= pi/2.
+
+    Parameters
+    ----------
+    theta : array, radians
+    r0, n : array or float, broadcastable against ``theta``; n > 0.5
+
+    Returns
+    -------
+    array
+        Reflectance at AOI ``theta``.
+    """
+    return r0 * _model_g(np.asarray(n, dtype=float), np.asarray(theta, dtype=float))
+
+
+def _log_cos(n, theta):
+    """tan(a theta) and log cos(a theta), a = 2 - 1/n, and where a theta < pi/2."""
+    angle = (2.0 - 1.0 / n) * theta
+    t = np.tan(angle)
+    return t, -0.5 * np.log1p(t * t), angle < 0.5 * np.pi
+
+
+def _model_g(n, theta):
+    """g = cos(a theta)^n, zero where a theta >= pi/2 (no return)."""
+    _, logcos, lit = _log_cos(n, theta)
+    g = np.exp(n * logcos)
+    return g if lit.all() else g * lit
+
+
+def _model_terms(n, theta):
+    """g = cos(a theta)^n and the derivatives of log g w.r.t. n.
+
+    Returns ``g``, ``h = d log g / dn`` and ``dh = dh/dn``; all three are zero
+    where a theta >= pi/2 (no return).
+    """
+    t, logcos, lit = _log_cos(n, theta)
+    g = np.exp(n * logcos)
+    h = logcos - theta * t / n
+    dh = -(theta * theta) * (1.0 + t * t) / (n * n * n)
+    if lit.all():
+        return g, h, dh
+    return g * lit, h * lit, dh * lit
+
+
+def _reduced_cost(n, r, theta, w):
+    """F(n) of the variable projection, up to the constant sum R^2; r, theta, w (view, pixel), n (pixel,)."""
+    g = _model_g(n, theta) * w
+    p = np.sum(r * g, axis=0)
+    q = np.sum(g * g, axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return -np.where(q > 0, p * p / q, 0.0)
+
+
+def _derivatives(n, r, theta, w):
+    """First and second derivative of F(n); r, theta, w (view, pixel), n (pixel,)."""
+    g, h, dh = _model_terms(n, theta)
+    g = g * w
+    rg = r * g
+    g2 = g * g
+    p = rg.sum(axis=0)
+    q = g2.sum(axis=0)
+    dp = (rg * h).sum(axis=0)
+    dq = 2.0 * (g2 * h).sum(axis=0)
+    d2p = (rg * (h * h + dh)).sum(axis=0)
+    d2q = 2.0 * (g2 * (2.0 * h * h + dh)).sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        d1 = -2.0 * p * dp / q + p * p * dq / (q * q)
+        d2 = (
+            -2.0 * (dp * dp + p * d2p) / q
+            + 4.0 * p * dp * dq / (q * q)
+            + p * p * d2q / (q * q)
+            - 2.0 * p * p * dq * dq / (q * q * q)
+        )
+    return d1, d2
+
+
+def _solve_n(r, theta, w):
+    """Minimise F(n) per pixel; returns n and a converged flag (pixel,)."""
+    npix = r.shape[1]
+    cost = np.stack([_reduced_cost(np.full(npix, value), r, theta, w) for value in _START_GRID])
+    best = np.argmin(cost, axis=0)
+    lo = np.where(best > 0, _START_GRID[np.maximum(best - 1, 0)], _N_MIN)
+    hi = _START_GRID[np.minimum(best + 1, _START_GRID.size - 1)]
+    n = _START_GRID[best].copy()
+    converged = np.zeros(npix, dtype=bool)
+    active = np.arange(npix)
+    for _ in range(_MAX_ITER):
+        if active.size == 0:
+            break
+        na, la, ha = n[active], lo[active], hi[active]
+        d1, d2 = _derivatives(na, r[:, active], theta[:, active], w[:, active])
+        rising = d1 > 0
+        ha = np.where(rising, na, ha)
+        la = np.where(rising, la, na)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            newton = na - d1 / d2
+        ok = (d2 > 0) & (newton >= la) & (newton <= ha)
+        done = (ok & (np.abs(newton - na) <= _TOL * na)) | (d1 == 0) | ((ha - la) <= _TOL * na)
+        n[active] = np.where(ok, newton, 0.5 * (la + ha))
+        lo[active], hi[active] = la, ha
+        converged[active[done]] = True
+        active = active[~done]
+    at_bound = (n <= _START_GRID[0]) | (n >= N_MAX)
+    return n, converged & ~at_bound
+
+
+def _fit_pixels(r, theta, w, n_views):
+    """Fit a block of pixels that all pass the view and spread checks; arrays (view, pixel)."""
+    n, conv = _solve_n(r, theta, w)
+    g, h, _ = _model_terms(n, theta)
+    g = g * w
+    q = (g * g).sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r0 = (r * g).sum(axis=0) / q
+        resid = (r0 * g - r) * w
+        ssr = (resid * resid).sum(axis=0)
+        gh = g * g * h
+        jtj_01 = r0 * gh.sum(axis=0)
+        jtj_11 = r0 * r0 * (gh * h).sum(axis=0)
+        det = q * jtj_11 - jtj_01 * jtj_01
+        s2 = np.where(n_views > 2, ssr / np.maximum(n_views - 2, 1), np.nan)
+        result = {
+            "R0": r0,
+            "n": n,
+            "R0_sigma": np.sqrt(s2 * jtj_11 / det),
+            "n_sigma": np.sqrt(s2 * q / det),
+            "rms": np.sqrt(ssr / n_views),
+        }
+    return result, conv, r0 > 0
+
+
+def _fit_scattering(r, theta, *, min_views=2, min_spread=DEFAULT_MIN_SPREAD):
+    """Fit R = R0 cos((2 - 1/n) theta)^n per pixel over the last axis.
+
+    Parameters
+    ----------
+    r : (..., view) array
+        Reflectance; NaN marks a missing observation.
+    theta : (..., view) array, radians
+        Angle of incidence; NaN marks a missing observation.
+    min_views : int
+        Fewer valid views give NaN with status 1.
+    min_spread : float, radians
+        Smaller AOI spread over the valid views gives NaN with status 2.
+
+    Returns
+    -------
+    dict of (...) arrays
+        ``R0``, ``n``, ``R0_sigma``, ``n_sigma`` (standard uncertainties from
+        the fit covariance scaled by the residual variance; NaN with fewer
+        than 3 views), ``rms`` (residual), ``n_views`` (uint8), ``converged``
+        (bool), ``status`` (uint8, see :data:`FIT_STATUS`).
+    """
+    r = np.asarray(r, dtype=np.float64)
+    theta = np.asarray(theta, dtype=np.float64)
+    shape = r.shape[:-1]
+    r = r.reshape(-1, r.shape[-1]).T.copy()
+    theta = theta.reshape(-1, theta.shape[-1]).T.copy()
+    valid = np.isfinite(r) & np.isfinite(theta)
+    r[~valid] = 0.0
+    theta[~valid] = 0.0
+    w = valid.astype(np.float64)
+    n_views = valid.sum(axis=0)
+    with np.errstate(invalid="ignore"):
+        spread = np.where(valid, theta, -np.inf).max(axis=0) - np.where(valid, theta, np.inf).min(axis=0)
+    status = np.zeros(r.shape[1], dtype=np.uint8)
+    status[spread < min_spread] = 2
+    status[n_views < min_views] = 1
+    fit = np.flatnonzero(status == 0)
+
+    npix = r.shape[1]
+    out = {key: np.full(npix, np.nan) for key in _FLOAT_OUTPUTS}
+    converged = np.zeros(npix, dtype=bool)
+    for block in np.array_split(fit, -(-fit.size // _BLOCK)) if fit.size else ():
+        result, conv, positive = _fit_pixels(r[:, block], theta[:, block], w[:, block], n_views[block])
+        for key in _FLOAT_OUTPUTS:
+            out[key][block] = result[key]
+        converged[block] = conv & positive
+        status[block[~positive]] = 4
+        status[block[positive & ~conv]] = 3
+    bad = status != 0
+    for key in out:
+        out[key][bad] = np.nan
+    out["n_views"] = n_views.astype(np.uint8)
+    out["converged"] = converged
+    out["status"] = status
+    return {key: value.reshape(shape) for key, value in out.items()}
+
+
+_OUTPUTS = {
+    "R0": ("1", "reflectance at normal incidence (unsmoothed fit)"),
+    "n": ("1", "scattering coefficient (unsmoothed fit)"),
+    "R0_sigma": ("1", "standard uncertainty of R0 from the fit covariance"),
+    "n_sigma": ("1", "standard uncertainty of n from the fit covariance"),
+    "rms": ("1", "rms residual of the fit"),
+    "n_views": ("1", "number of valid views"),
+    "converged": (None, "fit converged"),
+    "status": (None, "fit status code"),
+}
+_DTYPES = {"n_views": np.uint8, "converged": bool, "status": np.uint8}
+
+
+def fit_scattering(reflectance: xr.DataArray, aoi: xr.DataArray, *, min_views: int = 2, min_spread: float = DEFAULT_MIN_SPREAD) -> xr.Dataset:
+    """Per-pixel least-squares fit of the scattering model over the views.
+
+    Parameters
+    ----------
+    reflectance : (view, y, x) DataArray
+        Absolute reflectance on a common grid (registered views); NaN = missing.
+    aoi : (view, y, x) DataArray, radians
+        Angle of incidence on the same grid; NaN = missing.
+    min_views : int, default 2
+        Minimum number of valid views of a pixel.
+    min_spread : float, radians
+        Minimum AOI spread over a pixel's valid views.
+
+    Returns
+    -------
+    Dataset
+        (y, x) variables ``R0``, ``n`` (unsmoothed; NaN where not fitted),
+        ``R0_sigma``, ``n_sigma``, ``rms``, ``n_views``, ``converged`` and
+        ``status`` (codes in ``status.attrs["flag_meanings"]``). Lazy on dask
+        input, which must hold ``view`` in one chunk.
+    """
+    for name, arr in (("reflectance", reflectance), ("aoi", aoi)):
+        if "view" not in arr.dims:
+            raise ValueError(f"fit_scattering: {name} has dims {arr.dims}; it needs a 'view' dimension")
+        if arr.chunks is not None and len(arr.chunksizes["view"]) > 1:
+            raise ValueError(
+                f"fit_scattering: {name} is split along 'view' ({arr.chunksizes['view']}); "
+                "rechunk with {'view': -1} so each pixel's views are fitted together"
+            )
+    names = list(_OUTPUTS)
+
+    def kernel(r, t):
+        result = _fit_scattering(r, t, min_views=min_views, min_spread=min_spread)
+        return tuple(result[key] for key in names)
+
+    results = xr.apply_ufunc(
+        kernel,
+        reflectance,
+        aoi,
+        input_core_dims=[["view"], ["view"]],
+        output_core_dims=[[] for _ in names],
+        dask="parallelized",
+        output_dtypes=[_DTYPES.get(key, np.float64) for key in names],
+    )
+    ds = xr.Dataset(dict(zip(names, results)))
+    for key, (units, long_name) in _OUTPUTS.items():
+        ds[key].attrs = {"long_name": long_name} | ({"units": units} if units else {})
+    ds["status"].attrs["flag_values"] = list(FIT_STATUS)
+    ds["status"].attrs["flag_meanings"] = " ".join(v.replace(" ", "_") for v in FIT_STATUS.values())
+    ds.attrs = {"min_views": min_views, "min_spread": min_spread}
+    return ds
