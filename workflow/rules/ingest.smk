@@ -13,6 +13,8 @@ rule ingest:
         chunks=config["chunks"],
         code=STAGE_VERSION["ingest"],
     threads: 1
+    conda:
+        "../envs/surffin.yaml"
     resources:
         mem_mb=1000,
     script:

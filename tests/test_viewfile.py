@@ -1,0 +1,437 @@
+"""Tests of surffin.viewfile: the three view forms, poses, validation and listing."""
+
+import numpy as np
+import plyfile
+import pytest
+
+from surffin.errors import ViewFileError
+from surffin.viewfile import (
+    check_view,
+    list_views,
+    pose_sidecar_path,
+    read_view,
+    valid_pixels,
+    write_view,
+)
+
+RAW_QUANTUM_M = 0.125e-3 + 1e-12
+"""Worst rounding error of an ABCY16 coordinate with scale 0.25 mm, in metres."""
+
+
+def rigid_pose(translation=(0.1, -0.2, 0.3), angle=0.4) -> np.ndarray:
+    """A camera-to-world transform: rotation about y, then ``translation`` (metres)."""
+    cos, sin = np.cos(angle), np.sin(angle)
+    pose = np.eye(4)
+    pose[:3, :3] = [[cos, 0.0, sin], [0.0, 1.0, 0.0], [-sin, 0.0, cos]]
+    pose[:3, 3] = translation
+    return pose
+
+
+def snapshot(folder):
+    """Names, sizes and modification times of a folder's files."""
+    return {path.name: (path.stat().st_size, path.stat().st_mtime_ns) for path in folder.iterdir()}
+
+
+def vertex_element(columns: dict[str, np.ndarray]) -> plyfile.PlyElement:
+    """A PLY ``vertex`` element from named 1-D columns (their dtypes become the property types)."""
+    size = len(next(iter(columns.values())))
+    vertices = np.empty(size, dtype=[(name, column.dtype) for name, column in columns.items()])
+    for name, column in columns.items():
+        vertices[name] = column
+    return plyfile.PlyElement.describe(vertices, "vertex")
+
+
+# --- round trips and independent decoding ---------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("name", "options"),
+    [
+        pytest.param("v.npz", {"units": "m"}, id="npz-m"),
+        pytest.param("v.npz", {"units": "mm"}, id="npz-mm"),
+        pytest.param("v.npz", {"units": "m", "pose_sidecar": True}, id="npz-m-sidecar"),
+        pytest.param("v.ply", {"units": "m"}, id="ply-binary-m"),
+        pytest.param("v.ply", {"units": "mm", "binary": False}, id="ply-ascii-mm"),
+        pytest.param("v.raw", {}, id="raw"),
+    ],
+)
+def test_round_trip(tmp_path, synthetic_view, sensor, name, options):
+    xyz, intensity, valid = synthetic_view
+    pose = rigid_pose()
+    path = tmp_path / name
+    write_view(path, xyz, intensity, pose=pose, **options)
+    view = read_view(path, units=options.get("units", "m"), **sensor)
+    raw = path.suffix == ".raw"
+
+    assert view.path == path
+    np.testing.assert_array_equal(view.valid, valid)
+    assert view.xyz.dtype == np.float64 and view.intensity.dtype == np.float32
+    np.testing.assert_allclose(view.xyz[valid], xyz[valid], rtol=0, atol=RAW_QUANTUM_M if raw else 1e-6)
+    np.testing.assert_allclose(
+        view.intensity[valid], intensity[valid], rtol=0 if raw else 1e-6, atol=0.5 if raw else 0
+    )
+    assert np.isnan(view.xyz[~valid]).all() and (view.intensity[~valid] == 0).all()
+    np.testing.assert_allclose(view.pose, pose, rtol=0, atol=1e-12)
+    in_sidecar = path.suffix != ".npz" or options.get("pose_sidecar", False)
+    assert pose_sidecar_path(path).exists() == in_sidecar
+    check_view(path, units=options.get("units", "m"), **sensor)
+
+
+def test_view_without_pose(tmp_path, synthetic_view, sensor):
+    xyz, intensity, _ = synthetic_view
+    write_view(tmp_path / "v.ply", xyz, intensity)
+    assert read_view(tmp_path / "v.ply", **sensor).pose is None
+    assert sorted(snapshot(tmp_path)) == ["v.ply"]
+
+
+@pytest.mark.parametrize("name", ["v.npz", "v.ply"])
+def test_units_scale_xyz_and_pose(tmp_path, synthetic_view, sensor, name):
+    xyz, intensity, valid = synthetic_view
+    write_view(tmp_path / name, xyz, intensity, units="mm", pose=rigid_pose())
+    as_metres = read_view(tmp_path / name, units="m", **sensor)
+    np.testing.assert_allclose(as_metres.xyz[valid], 1000 * xyz[valid], rtol=1e-6)
+    np.testing.assert_allclose(as_metres.pose[:3, 3], 1000 * rigid_pose()[:3, 3])
+
+
+def test_raw_decodes_coord3d_abcy16(tmp_path, sensor):
+    height, width = sensor["height"], sensor["width"]
+    channels = np.zeros((height, width, 4), dtype="<u2")
+    channels[..., 0] = 32768 + np.arange(width)
+    channels[..., 1] = 30000 + np.arange(height)[:, None]
+    channels[..., 2] = 4000
+    channels[..., 3] = 500
+    channels[1, 1, 2] = 65535
+    channels[2, 3, 0] = 65535
+    path = tmp_path / "v.raw"
+    path.write_bytes(channels.tobytes())
+
+    view = read_view(path, **sensor)
+    expected_valid = np.ones((height, width), dtype=bool)
+    expected_valid[1, 1] = expected_valid[2, 3] = False
+    np.testing.assert_array_equal(view.valid, expected_valid)
+    np.testing.assert_allclose(view.xyz[0, 5], [5 * 0.25e-3, (30000 * 0.25 - 8192) * 1e-3, 1.0])
+    assert (view.intensity[expected_valid] == 500).all()
+
+    custom = read_view(path, abcy16={"scale": 0.5, "offset": (0.0, 0.0, 10.0)}, **sensor)
+    np.testing.assert_allclose(custom.xyz[0, 5], [(32773 * 0.5) * 1e-3, 15.0, 2.01])
+
+
+def test_ply_big_endian_with_extra_properties_and_elements(tmp_path, synthetic_view, sensor):
+    xyz, intensity, valid = synthetic_view
+    flat = xyz.reshape(-1, 3)
+    vertex = vertex_element(
+        {
+            "confidence": np.full(len(flat), 7, dtype=np.uint8),
+            "x": flat[:, 0],
+            "y": flat[:, 1],
+            "z": flat[:, 2],
+            "intensity": np.rint(intensity).astype(np.uint16).ravel(),
+        }
+    )
+    faces = plyfile.PlyElement.describe(
+        np.array([([0, 1, 2],)], dtype=[("vertex_indices", "i4", (3,))]), "face"
+    )
+    path = tmp_path / "v.ply"
+    plyfile.PlyData([vertex, faces], byte_order=">", comments=["made by hand"]).write(path)
+
+    view = read_view(path, **sensor)
+    np.testing.assert_array_equal(view.valid, valid)
+    np.testing.assert_allclose(view.xyz[valid], xyz[valid], rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(view.intensity[valid], np.rint(intensity)[valid])
+
+
+def test_npz_with_integer_intensity_and_extra_array(tmp_path, synthetic_view, sensor):
+    xyz, intensity, valid = synthetic_view
+    path = tmp_path / "v.npz"
+    np.savez(path, xyz=xyz.astype(np.float32), intensity=np.rint(intensity).astype(np.uint16), note=np.arange(3))
+    view = read_view(path, **sensor)
+    np.testing.assert_array_equal(view.intensity[valid], np.rint(intensity)[valid])
+    assert view.pose is None
+
+
+@pytest.mark.parametrize(("binary", "header_line"), [(True, b"binary_little_endian 1.0"), (False, b"ascii 1.0")])
+def test_ply_writer_format(tmp_path, synthetic_view, binary, header_line):
+    xyz, intensity, _ = synthetic_view
+    write_view(tmp_path / "v.ply", xyz, intensity, binary=binary)
+    assert b"format " + header_line + b"\n" in (tmp_path / "v.ply").read_bytes()[:200]
+
+
+# --- broken files -------------------------------------------------------------------------------
+
+
+def npz_with(**changes):
+    """Maker of an npz holding the synthetic arrays, with ``changes`` (None removes an array)."""
+
+    def make(folder, xyz, intensity):
+        arrays = {"xyz": xyz, "intensity": intensity, **changes}
+        path = folder / "v.npz"
+        np.savez(path, **{name: array for name, array in arrays.items() if array is not None})
+        return path, path
+
+    return make
+
+
+def npz_with_pose(pose):
+    return npz_with(pose=np.asarray(pose))
+
+
+def pose_with(row, col, value):
+    pose = rigid_pose()
+    pose[row, col] = value
+    return pose
+
+
+def pose_scaled(factor):
+    pose = rigid_pose()
+    pose[:3, :3] *= factor
+    return pose
+
+
+def written(name, **options):
+    """Maker of a view written by write_view."""
+
+    def make(folder, xyz, intensity):
+        path = folder / name
+        write_view(path, xyz, intensity, **options)
+        return path, path
+
+    return make
+
+
+def edited(make_view, edit):
+    """Maker: ``make_view``, then ``edit(path)`` of the file it wrote."""
+
+    def make(folder, xyz, intensity):
+        path, named = make_view(folder, xyz, intensity)
+        edit(path)
+        return path, named
+
+    return make
+
+
+def truncated(size_change):
+    def edit(path):
+        path.write_bytes(path.read_bytes()[:size_change])
+
+    return edit
+
+
+def replaced(old, new):
+    def edit(path):
+        path.write_bytes(path.read_bytes().replace(old, new, 1))
+
+    return edit
+
+
+def sidecar_text(text):
+    """Maker of a ply view whose pose sidecar holds ``text``."""
+
+    def make(folder, xyz, intensity):
+        path = folder / "v.ply"
+        write_view(path, xyz, intensity)
+        pose_sidecar_path(path).write_text(text)
+        return path, pose_sidecar_path(path)
+
+    return make
+
+
+def ply_of(**changes):
+    """Maker of a binary PLY of the synthetic arrays, with ``changes`` (None removes a property)."""
+
+    def make(folder, xyz, intensity):
+        columns = {"x": xyz[..., 0], "y": xyz[..., 1], "z": xyz[..., 2], "intensity": intensity, **changes}
+        path = folder / "v.ply"
+        kept = {name: np.ravel(column) for name, column in columns.items() if column is not None}
+        plyfile.PlyData([vertex_element(kept)]).write(path)
+        return path, path
+
+    return make
+
+
+def file_bytes(name, content):
+    def make(folder, xyz, intensity):
+        path = folder / name
+        path.write_bytes(content)
+        return path, path
+
+    return make
+
+
+def with_arrays(transform, name="v.npz"):
+    """Maker of a view written from ``transform(xyz, intensity)``."""
+
+    def make(folder, xyz, intensity):
+        path = folder / name
+        write_view(path, *transform(xyz.copy(), intensity.copy()))
+        return path, path
+
+    return make
+
+
+def intensity_set(value, pixels):
+    def transform(xyz, intensity):
+        for pixel in pixels:
+            intensity[pixel] = value
+        return xyz, intensity
+
+    return transform
+
+
+def all_invalid(xyz, intensity):
+    return np.zeros_like(xyz), intensity
+
+
+def pose_in_npz_and_sidecar(folder, xyz, intensity):
+    path = folder / "v.npz"
+    write_view(path, xyz, intensity, pose=rigid_pose())
+    pose_sidecar_path(path).write_text("1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1")
+    return path, path
+
+
+# (maker, message pattern, caught by the cheap check_view too)
+BROKEN = {
+    "npz-object-array": (npz_with(xyz=np.array([None, 1], dtype=object)), "object array", True),
+    "npz-integer-xyz": (npz_with(xyz=np.ones((6, 8, 3), dtype=int)), r"'xyz' is int64.*expected a float", True),
+    "npz-xyz-shape": (npz_with(xyz=np.ones((6, 7, 3))), r"'xyz' is float64 of shape \(6, 7, 3\)", True),
+    "npz-no-intensity": (npz_with(intensity=None), r"no array 'intensity'", True),
+    "npz-text-intensity": (npz_with(intensity=np.full((6, 8), "a")), r"'intensity' is <U1.*numeric", True),
+    "npz-not-a-zip": (file_bytes("v.npz", b"not a zip archive"), "unreadable", True),
+    "npz-truncated": (edited(written("v.npz"), truncated(-100)), "unreadable", True),
+    "npz-pose-shape": (npz_with_pose(np.eye(4)[:3]), r"'pose' is float64 of shape \(3, 4\); expected", True),
+    "npz-pose-last-row": (npz_with_pose(pose_with(3, 0, 0.5)), r"malformed pose: last row", True),
+    "npz-pose-scaled": (npz_with_pose(pose_scaled(1.001)), "malformed pose: .*not a rotation", True),
+    "npz-pose-mirror": (npz_with_pose(np.diag([1.0, 1.0, -1.0, 1.0])), "malformed pose: .*det -1", True),
+    "npz-pose-nan": (npz_with_pose(pose_with(0, 3, np.nan)), "malformed pose: non-finite", True),
+    "pose-in-npz-and-sidecar": (pose_in_npz_and_sidecar, "both inside the npz and in the sidecar", True),
+    "sidecar-15-numbers": (sidecar_text("1 " * 15), "holds 15 numbers; expected 16", True),
+    "sidecar-word": (sidecar_text("1 " * 15 + "one"), "unreadable pose sidecar", True),
+    "sidecar-malformed": (sidecar_text("1 0 0 0 0 1 0 0 0 0 1 0 0 0 1 1"), "malformed pose: last row", True),
+    "ply-vertex-count": (with_arrays(lambda x, i: (x[:5], i[:5]), "v.ply"), r"40 vertices; expected", True),
+    "ply-no-intensity": (ply_of(intensity=None), "'intensity' is missing", True),
+    "ply-integer-x": (ply_of(x=np.zeros(48, "i4")), "'x' is int32; expected a scalar float or double", True),
+    "ply-truncated": (edited(written("v.ply"), truncated(-10)), "truncated PLY", True),
+    "ply-garbled-ascii": (
+        edited(written("v.ply", binary=False), replaced(b"end_header\nnan", b"end_header\nabc")),
+        "unreadable",
+        False,
+    ),
+    "ply-not-ply": (file_bytes("v.ply", b"hello\n"), "'ply'", True),
+    "ply-big-format": (
+        edited(written("v.ply"), replaced(b"binary_little_endian", b"binary_middle_endian")),
+        "not understood",
+        True,
+    ),
+    "ply-no-end-header": (file_bytes("v.ply", b"ply\nformat ascii 1.0\nelement vertex 48\n"), "end_header", True),
+    "ply-two-vertex-elements": (
+        edited(written("v.ply", binary=False), replaced(b"end_header", b"element vertex 0\nend_header")),
+        "2 'vertex' elements; expected exactly one",
+        True,
+    ),
+    "raw-size": (edited(written("v.raw"), truncated(-2)), r"382 bytes; expected width\*height\*8 = 384", True),
+    "intensity-nan": (
+        with_arrays(intensity_set(np.nan, [(0, 0), (3, 3), (4, 4)])),
+        "NaN, infinite or negative on 2 of 44 valid pixels",
+        False,
+    ),
+    "intensity-negative": (
+        with_arrays(intensity_set(-1.0, [(1, 1), (3, 3), (4, 6)]), "v.ply"),
+        "NaN, infinite or negative on 3 of 44 valid pixels",
+        False,
+    ),
+    "no-valid-pixel": (with_arrays(all_invalid, "v.raw"), "no valid pixel", False),
+    "not-a-view-suffix": (file_bytes("v.txt", b""), "not a view form", True),
+    "missing-file": (lambda folder, xyz, intensity: (folder / "v.npz",) * 2, "unreadable", True),
+}
+
+
+@pytest.mark.parametrize(("make", "match", "structural"), BROKEN.values(), ids=BROKEN.keys())
+def test_broken_view_file(tmp_path, synthetic_view, sensor, make, match, structural):
+    xyz, intensity, _ = synthetic_view
+    path, named = make(tmp_path, xyz, intensity)
+    before = snapshot(tmp_path)
+
+    with pytest.raises(ViewFileError, match=match) as raised:
+        read_view(path, **sensor)
+    assert str(named) in str(raised.value)
+    assert snapshot(tmp_path) == before
+
+    if structural:
+        with pytest.raises(ViewFileError, match=match):
+            check_view(path, **sensor)
+    else:
+        check_view(path, **sensor)
+    assert snapshot(tmp_path) == before
+
+
+# --- writing ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("name", "change", "match"),
+    [
+        ("v.txt", {}, "not a view form"),
+        ("v.npz", {"xyz": np.zeros((6, 8, 2))}, r"xyz has shape \(6, 8, 2\)"),
+        ("v.npz", {"intensity": np.zeros((6, 7))}, "intensity is float64 \\(6, 7\\)"),
+        ("v.npz", {"pose": np.eye(3)}, "malformed pose argument"),
+        ("v.npz", {"units": "cm"}, "units 'cm'"),
+        ("v.raw", {"xyz": np.full((6, 8, 3), 100.0)}, "ABCY16 codes"),
+    ],
+)
+def test_write_view_refuses_and_writes_nothing(tmp_path, synthetic_view, name, change, match):
+    xyz, intensity, _ = synthetic_view
+    arguments = {"xyz": xyz, "intensity": intensity, **change}
+    with pytest.raises(ValueError, match=match):
+        write_view(tmp_path / name, **arguments)
+    assert snapshot(tmp_path) == {}
+
+
+def test_write_view_replaces_and_leaves_no_temporary(tmp_path, synthetic_view, sensor):
+    xyz, intensity, _ = synthetic_view
+    path = tmp_path / "v.raw"
+    write_view(path, xyz, intensity)
+    write_view(path, xyz, 2 * intensity)
+    assert sorted(snapshot(tmp_path)) == ["v.raw"]
+    view = read_view(path, **sensor)
+    np.testing.assert_allclose(view.intensity[view.valid], 2 * intensity[view.valid], atol=0.5)
+
+
+@pytest.mark.parametrize(("name", "options"), [("v.ply", {}), ("v.npz", {"pose": rigid_pose()})])
+def test_rewrite_removes_stale_sidecar(tmp_path, synthetic_view, sensor, name, options):
+    xyz, intensity, _ = synthetic_view
+    path = tmp_path / name
+    write_view(path, xyz, intensity, pose=rigid_pose(angle=0.1), pose_sidecar=True)
+    assert pose_sidecar_path(path).exists()
+    write_view(path, xyz, intensity, **options)
+    assert not pose_sidecar_path(path).exists()
+    pose = read_view(path, **sensor).pose
+    assert (pose is None) if "pose" not in options else np.allclose(pose, options["pose"])
+
+
+# --- listing ------------------------------------------------------------------------------------
+
+
+def test_list_views(tmp_path):
+    for name in ["b.ply", "a.npz", "c.raw", "a.pose.txt", "notes.txt", ".hidden.npz", "truth.npz", "sub/d.npz"]:
+        (tmp_path / name).parent.mkdir(exist_ok=True)
+        (tmp_path / name).touch()
+    (tmp_path / "folder.npz").mkdir()
+    assert [path.name for path in list_views(tmp_path)] == ["a.npz", "b.ply", "c.raw", "truth.npz"]
+    excluded = list_views(tmp_path, exclude=[tmp_path / "sub" / ".." / "truth.npz"])
+    assert excluded == [tmp_path / "a.npz", tmp_path / "b.ply", tmp_path / "c.raw"]
+
+
+def test_list_views_refuses_two_files_with_one_stem(tmp_path):
+    for name in ["a.npz", "b.ply", "b.raw"]:
+        (tmp_path / name).touch()
+    with pytest.raises(ViewFileError, match=r"b\.ply and .*b\.raw: two view files with the stem 'b'"):
+        list_views(tmp_path)
+
+
+def test_list_views_of_missing_folder(tmp_path):
+    with pytest.raises(ViewFileError, match="cannot list the view files"):
+        list_views(tmp_path / "nowhere")
+
+
+def test_valid_pixels():
+    xyz = np.array([[1.0, 2.0, 3.0], [0.0, 0.0, 0.0], [1.0, np.nan, 3.0], [1.0, 1.0, -1.0], [0.0, 0.0, 1e-9]])
+    np.testing.assert_array_equal(valid_pixels(xyz), [True, False, False, False, True])
