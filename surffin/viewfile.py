@@ -52,6 +52,7 @@ __all__ = [
     "pose_sidecar_path",
     "valid_pixels",
     "npz_headers",
+    "write_atomically",
 ]
 
 ABCY16_DEFAULT = {"scale": 0.25, "offset": (-8192.0, -8192.0, 0.0)}
@@ -336,10 +337,10 @@ def write_view(
         content = _encode_raw(path, xyz_file, intensity, ABCY16_DEFAULT if abcy16 is None else abcy16)
     sidecar = pose_sidecar_path(path)
     if in_sidecar:
-        _write_atomically(sidecar, _encode_pose(file_pose))
+        write_atomically(sidecar, _encode_pose(file_pose))
     else:
         sidecar.unlink(missing_ok=True)
-    _write_atomically(path, content)
+    write_atomically(path, content)
 
 
 def list_views(folder: str | Path, *, exclude: Iterable[str | Path] = ()) -> list[Path]:
@@ -474,7 +475,7 @@ def _encode_pose(pose: np.ndarray) -> bytes:
     return "".join(" ".join(f"{value:.17g}" for value in row) + "\n" for row in pose).encode("ascii")
 
 
-def _write_atomically(path: Path, content: bytes) -> None:
+def write_atomically(path: Path, content: bytes) -> None:
     """Write ``content`` to a hidden temporary file beside ``path``, then rename it into place."""
     handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:

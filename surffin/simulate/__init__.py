@@ -1,0 +1,72 @@
+"""The synthetic depth camera: campaigns with known truth.
+
+A pinhole camera at known poses looks at planar surfaces (a calibration wall, a
+reference panel, plaster specimens on a board) whose reflectance follows the
+paper's scattering model with textured R0 and n maps; a per-pixel instrument
+function, intensity and depth noise and invalid pixels make the views behave
+like the real camera's. :func:`simulate_campaign` writes them as a campaign
+(CAMPAIGN.md layout) plus truth stores outside it.
+
+Modules: :mod:`~surffin.simulate.camera` (geometry, poses),
+:mod:`~surffin.simulate.scene` (faces, textures, ray casting),
+:mod:`~surffin.simulate.instrument` (radiometry, noise),
+:mod:`~surffin.simulate.presets` (named designs and materials),
+:mod:`~surffin.simulate.plan` (the acquisitions of a campaign),
+:mod:`~surffin.simulate.truth` (truth stores),
+:mod:`~surffin.simulate.acquire` (rendering and writing a campaign),
+:mod:`~surffin.simulate.command` (``surffin simulate``).
+
+The names below are imported on first use, so that the command line parser
+does not pay for xarray and zarr.
+"""
+
+import importlib
+
+_LAZY = {
+    "simulate_campaign": "acquire",
+    "FORMATS": "command",
+    "UNITS": "command",
+    "cli_parser": "command",
+    "cli_run": "command",
+    "Acquisition": "plan",
+    "plan_campaign": "plan",
+    "PRESETS": "presets",
+    "Preset": "presets",
+    "Specimen": "presets",
+    "plaster": "presets",
+    "PinholeCamera": "camera",
+    "look_at_pose": "camera",
+    "world_rays": "camera",
+    "to_camera": "camera",
+    "TERMS": "instrument",
+    "Instrument": "instrument",
+    "draw_instrument": "instrument",
+    "instrument_function": "instrument",
+    "observe": "instrument",
+    "Face": "scene",
+    "Geometry": "scene",
+    "Material": "scene",
+    "Scene": "scene",
+    "Texture": "scene",
+    "box_faces": "scene",
+    "plane_face": "scene",
+    "keyed_rng": "scene",
+    "random_field": "scene",
+    "render": "scene",
+    "reference_coordinates": "truth",
+    "scene_truth_label": "truth",
+    "item_truth": "truth",
+    "instrument_truth": "truth",
+}
+
+__all__ = list(_LAZY)
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        return getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(__all__)

@@ -1,0 +1,165 @@
+"""The acquisition design of a synthetic campaign: what the camera sees, and from where."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from surffin.simulate.camera import look_at_pose
+from surffin.simulate.presets import Preset, Specimen
+from surffin.simulate.scene import Face, box_faces, keyed_rng, plane_face
+
+__all__ = ["Acquisition", "plan_campaign"]
+
+_GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
+# World X, Y of the specimens' places on the board (specimen k at
+# (_SPECIMEN_PITCH * (k - (K-1)/2), _SPECIMEN_ROW)) and of the scene's centre.
+_SPECIMEN_PITCH = 0.3
+_SPECIMEN_ROW = -0.5
+_SCENE_CENTRE = (0.0, 0.5)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Acquisition:
+    """One folder of views: a scene seen from a list of poses.
+
+    Attributes
+    ----------
+    name : str
+        Item name (specimens, scenes) or ``wall`` / ``reference``.
+    kind : {"wall", "reference", "specimen", "scene"}
+    folder : str
+        Relative to the campaign directory.
+    faces : tuple of Face
+        The scene.
+    poses : tuple of (4, 4) ndarray
+        Camera-to-world, metres, in view order; the first is the reference view.
+    prefix : str
+        View names are ``<prefix><index>`` with ``digits`` digits.
+    digits : int
+    specimen : Specimen or None
+        The specimen of a specimen acquisition.
+    roi_face : str or None
+        Name of the face whose pixels in the reference view make the roi
+        (specimens and the reference panel).
+    """
+
+    name: str
+    kind: str
+    folder: str
+    faces: tuple[Face, ...]
+    poses: tuple[np.ndarray, ...]
+    prefix: str = "v"
+    digits: int = 2
+    specimen: Specimen | None = None
+    roi_face: str | None = None
+
+    @property
+    def stems(self) -> list[str]:
+        """View file stems, in view order."""
+        return [f"{self.prefix}{index:0{self.digits}d}" for index in range(len(self.poses))]
+
+    @property
+    def has_truth(self) -> bool:
+        """Specimens and scenes get a truth store."""
+        return self.kind in ("specimen", "scene")
+
+
+def _rolls(preset: Preset, seed: int, name: str, count: int) -> np.ndarray:
+    """Random camera rolls of an acquisition's views, radians."""
+    return np.deg2rad(keyed_rng(seed, "roll", name).uniform(-preset.roll, preset.roll, count))
+
+
+def _wall(preset: Preset, seed: int) -> Acquisition:
+    """One view per (distance, tilt) of the design, aimed at random wall points, golden-angle azimuths."""
+    design = [(distance, tilt) for distance in preset.wall_distances for tilt in preset.wall_tilts]
+    targets = keyed_rng(seed, "targets", "wall").uniform(-preset.wall_spread, preset.wall_spread, (len(design), 2))
+    rolls = _rolls(preset, seed, "wall", len(design))
+    poses = tuple(
+        look_at_pose((x, y, 0.0), distance, np.deg2rad(tilt), index * _GOLDEN_ANGLE, roll)
+        for index, ((distance, tilt), (x, y), roll) in enumerate(zip(design, targets, rolls))
+    )
+    digits = max(3, len(str(len(poses) - 1)))
+    faces = (plane_face("wall", preset.wall),)
+    return Acquisition("wall", "wall", "calibration/wall", faces, poses, prefix="w", digits=digits)
+
+
+def _reference(preset: Preset) -> Acquisition:
+    """The panel on the wall, fronto-parallel, all views from one pose (the panel on the same pixels)."""
+    faces = (
+        plane_face("wall", preset.wall),
+        *box_faces("panel", (0.0, 0.0), preset.panel_size, preset.panel_thickness, 0.0, preset.reference, -1),
+    )
+    pose = look_at_pose((0.0, 0.0, -preset.panel_thickness), preset.reference_distance, 0.0, 0.0)
+    poses = tuple(pose.copy() for _ in range(preset.reference_views))
+    return Acquisition(
+        "reference", "reference", "calibration/reference", faces, poses, prefix="r", roi_face="panel.top"
+    )
+
+
+def _orbit(preset: Preset, seed: int, name: str, target, distance: float, tilts, turn: float) -> tuple:
+    """Poses around a target: one per tilt (degrees), azimuths by the golden angle from ``turn``."""
+    rolls = _rolls(preset, seed, name, len(tilts))
+    return tuple(
+        look_at_pose(target, distance, np.deg2rad(tilt), turn + index * _GOLDEN_ANGLE, roll)
+        for index, (tilt, roll) in enumerate(zip(tilts, rolls))
+    )
+
+
+def _specimen(preset: Preset, seed: int, index: int) -> Acquisition:
+    """Specimen ``index`` alone on the board, at the image centre of every view."""
+    specimen = preset.specimens[index]
+    height = preset.specimen_thickness
+    centre = (_SPECIMEN_PITCH * (index - (len(preset.specimens) - 1) / 2.0), _SPECIMEN_ROW)
+    label = preset.classes.index(specimen.cls)
+    faces = (
+        plane_face("board", preset.board),
+        *box_faces(specimen.name, centre, preset.specimen_size, height, 0.0, specimen.material, label),
+    )
+    target = (*centre, -height)
+    poses = _orbit(preset, seed, specimen.name, target, preset.specimen_distance, preset.specimen_tilts, index)
+    folder = f"specimens/{specimen.name}"
+    return Acquisition(
+        specimen.name, "specimen", folder, faces, poses, specimen=specimen, roi_face=f"{specimen.name}.top"
+    )
+
+
+def _scene(preset: Preset, seed: int) -> Acquisition:
+    """All specimens on one board in rows of two, each turned by its ``scene_rotations`` angle."""
+    height = preset.specimen_thickness
+    pitch = preset.specimen_size + preset.scene_gap
+    faces = [plane_face("board", preset.board)]
+    for index, (specimen, rotation) in enumerate(zip(preset.specimens, preset.scene_rotations, strict=True)):
+        row, column = divmod(index, 2)
+        centre = (_SCENE_CENTRE[0] + pitch * (column - 0.5), _SCENE_CENTRE[1] + pitch * (row - 0.5))
+        label = preset.classes.index(specimen.cls)
+        faces += box_faces(
+            f"T1.{specimen.name}", centre, preset.specimen_size, height, np.deg2rad(rotation), specimen.material, label
+        )
+    target = (*_SCENE_CENTRE, -height)
+    turn = len(preset.specimens)
+    poses = _orbit(preset, seed, "T1", target, preset.scene_distance, preset.scene_tilts, turn)
+    return Acquisition("T1", "scene", "scenes/T1", tuple(faces), poses)
+
+
+def plan_campaign(preset: Preset, seed: int) -> list[Acquisition]:
+    """The acquisitions of a campaign: what is in front of the camera, and from where.
+
+    Parameters
+    ----------
+    preset : Preset
+    seed : int
+        Seeds the random parts of the design (wall targets, camera rolls).
+
+    Returns
+    -------
+    list of Acquisition
+        The calibration wall, the reference panel, one per specimen (alone on
+        the board, at the image centre) and the scene ``T1`` (all specimens in a
+        2 x 2 arrangement, rotated in-plane by ``preset.scene_rotations``).
+        Specimen and scene views look at the centre of their top faces, with
+        azimuths following the golden angle from a different start per item.
+    """
+    specimens = [_specimen(preset, seed, index) for index in range(len(preset.specimens))]
+    return [_wall(preset, seed), _reference(preset), *specimens, _scene(preset, seed)]
