@@ -1,0 +1,427 @@
+"""Surface finish classes from the feature images (method step 6).
+
+The training set pools the per-pixel feature vectors (R0, n, variability) of
+the reference specimens, inside their rois, with all three features finite.
+Features have different scales (variability is ~0.01, n ~1), so a plain
+Euclidean nearest neighbour would be decided by the feature with the largest
+spread; every feature is therefore standardised to zero mean and unit
+standard deviation over the training samples (``ddof=0``, a constant feature
+keeps scale 1). The standardisation is stored in the training set
+(``feature_mean``, ``feature_std``) and the classifier is rebuilt from the
+stored samples whenever it is needed: nothing is pickled.
+
+:func:`classify` predicts every pixel with a k-nearest-neighbour classifier
+(the paper: k = 1); :func:`filter_labels` then removes isolated errors. The
+paper's median filter on class indices depends on the (arbitrary, here
+alphabetical) order of the classes: a window with 10 votes for class 0, 5 for
+class 1 and 10 for class 2 becomes class 1, the least frequent, because its
+index lies in the middle. ``kind="majority"`` (the most frequent label in the
+window) has no such dependence. Both count the votes of each class with one box filter per class,
+so their cost does not depend on the window size.
+"""
+
+from __future__ import annotations
+
+import numbers
+from collections.abc import Mapping, Sequence
+
+import cv2
+import numpy as np
+import xarray as xr
+
+from surffin.campaign import Roi
+from surffin.errors import SurffinError
+from surffin.features import _check_grid, _check_size, _image_filter, select_roi
+
+__all__ = [
+    "FEATURES",
+    "UNCLASSIFIED",
+    "training_set",
+    "combine_training",
+    "fit_classifier",
+    "classify",
+    "filter_labels",
+    "score",
+    "class_fractions",
+]
+
+#: Feature variables of a features Dataset, in the order of the training set's ``feature`` axis.
+FEATURES = ("R0", "n", "variability")
+#: Label of a pixel with no class (a feature is missing).
+UNCLASSIFIED = -1
+_UNCLASSIFIED_NAME = "(unclassified)"
+_FILTERS = ("median", "majority")
+
+
+def _feature_matrix(ds: xr.Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """Features (pixel, feature) float64 of a (y, x) Dataset, row-major, and where all are finite."""
+    missing = [name for name in FEATURES if name not in ds]
+    if missing:
+        raise ValueError(f"features Dataset lacks {missing}; it needs {list(FEATURES)} on (y, x)")
+    for name in FEATURES:
+        _check_grid(ds[name], name)
+    stacked = ds[list(FEATURES)].to_dataarray("feature").transpose("y", "x", "feature")
+    values = np.asarray(stacked.values, dtype=np.float64).reshape(-1, len(FEATURES))
+    return values, np.isfinite(values).all(axis=1)
+
+
+def _names(values) -> list[str]:
+    """Python strings of a sequence of names (numpy unicode, object or bytes)."""
+    return [str(v, "utf-8") if isinstance(v, bytes) else str(v) for v in np.asarray(values).tolist()]
+
+
+def _standardised(samples: xr.Dataset) -> xr.Dataset:
+    """``samples`` with the standardisation, class list and item list of its samples."""
+    values = samples["features"].values
+    std = values.std(axis=0)
+    std[std == 0] = 1.0
+    out = samples.assign(
+        feature_mean=("feature", values.mean(axis=0)),
+        feature_std=("feature", std),
+    )
+    out["feature_mean"].attrs = {"units": "1", "long_name": "mean of each feature over the training samples"}
+    out["feature_std"].attrs = {
+        "units": "1",
+        "long_name": "standard deviation (ddof=0) of each feature over the training samples, 1 where constant",
+    }
+    out.attrs = {
+        "classes": sorted(set(_names(samples["class"].values))),
+        "items": list(dict.fromkeys(_names(samples["item"].values))),
+        "standardisation": "z = (features - feature_mean) / feature_std",
+    }
+    return out
+
+
+def _pooled(parts: Sequence[xr.Dataset]) -> xr.Dataset:
+    """Samples of several sets in one, standardised (:func:`_standardised`)."""
+    return _standardised(xr.concat(parts, "sample", data_vars="all", coords="minimal", compat="override", join="exact"))
+
+
+def _samples(values: np.ndarray, name: str, class_name: str, y: np.ndarray, x: np.ndarray) -> xr.Dataset:
+    count = values.shape[0]
+    return xr.Dataset(
+        {
+            "features": (("sample", "feature"), values, {"units": "1", "long_name": "feature vector"}),
+            "class": ("sample", np.full(count, class_name), {"long_name": "class name"}),
+        },
+        coords={
+            "feature": list(FEATURES),
+            "item": ("sample", np.full(count, name), {"long_name": "source item"}),
+            "y": ("sample", y, {"long_name": "sensor row"}),
+            "x": ("sample", x, {"long_name": "sensor column"}),
+        },
+    )
+
+
+def training_set(items: Mapping[str, tuple[xr.Dataset, str, Roi | None]]) -> xr.Dataset:
+    """Pool the feature vectors of reference specimens into a training set.
+
+    Parameters
+    ----------
+    items : mapping of item name to (features, class name, roi)
+        ``features``: Dataset (y, x) with :data:`FEATURES` (output of
+        :func:`surffin.features.features`); ``roi``: the specimen's pixels in
+        sensor coordinates, or None for all pixels.
+
+    Returns
+    -------
+    Dataset
+        ``features (sample, feature)`` float64 with ``feature`` = :data:`FEATURES`;
+        ``class (sample)`` class names; coordinates ``item``, ``y``, ``x``
+        (sample): source item and sensor pixel; ``feature_mean``,
+        ``feature_std (feature)``: the standardisation. Samples follow the
+        order of ``items``, each item's pixels row-major; only pixels inside the
+        roi with all three features finite. Attrs ``classes`` (sorted class
+        names: the label order), ``items``, ``standardisation``.
+
+    Raises
+    ------
+    SurffinError
+        An item has no pixel with all features finite inside its roi.
+    """
+    if not items:
+        raise ValueError("training_set needs at least one item")
+    parts = []
+    for name, (ds, class_name, roi) in items.items():
+        part = ds if roi is None else select_roi(ds, roi)
+        values, finite = _feature_matrix(part)
+        if not finite.any():
+            where = "" if roi is None else f" inside {roi}"
+            raise SurffinError(
+                f"training item {name!r} (class {class_name!r}): no pixel{where} has all of {list(FEATURES)} "
+                "finite; check its roi and its feature store"
+            )
+        y, x = (coord.ravel()[finite] for coord in np.meshgrid(part["y"].values, part["x"].values, indexing="ij"))
+        parts.append(_samples(values[finite], str(name), str(class_name), y, x))
+    return _pooled(parts)
+
+
+def combine_training(*training: xr.Dataset) -> xr.Dataset:
+    """Concatenate training sets (e.g. from several campaigns) and recompute the standardisation.
+
+    Parameters
+    ----------
+    *training : Dataset
+        Outputs of :func:`training_set` (or of this function, or read back from zarr).
+
+    Returns
+    -------
+    Dataset
+        As :func:`training_set`, samples in the order given.
+    """
+    if not training:
+        raise ValueError("combine_training needs at least one training set")
+    parts = [t.drop_vars(["feature_mean", "feature_std"], errors="ignore").load() for t in training]
+    return _pooled(parts)
+
+
+def _check_k(k, n_samples: int) -> int:
+    if isinstance(k, bool) or not isinstance(k, numbers.Integral) or not 1 <= k <= n_samples:
+        raise ValueError(f"k must be an integer from 1 to the number of training samples ({n_samples}), got {k!r}")
+    return int(k)
+
+
+def _standardise(values: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
+    return (values - mean) / std
+
+
+def fit_classifier(training: xr.Dataset, k: int = 1, *, n_jobs: int | None = None):
+    """A k-nearest-neighbour classifier of raw feature vectors, fitted on a training set.
+
+    Parameters
+    ----------
+    training : Dataset
+        Output of :func:`training_set` (or :func:`combine_training`).
+    k : int, default 1
+        Number of neighbours (the paper: 1).
+    n_jobs : int, optional
+        Parallel jobs of the neighbour search (scikit-learn's meaning).
+
+    Returns
+    -------
+    sklearn.pipeline.Pipeline
+        Standardisation with the stored ``feature_mean``/``feature_std``, then
+        ``KNeighborsClassifier``; ``predict`` takes (pixel, feature) arrays in
+        the order of :data:`FEATURES` and returns class indices into
+        ``training.attrs["classes"]``.
+    """
+    from sklearn.neighbors import KNeighborsClassifier
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import FunctionTransformer
+
+    features = np.asarray(training["features"].transpose("sample", "feature").values, dtype=np.float64)
+    stored = _names(training["feature"].values)
+    if stored != list(FEATURES):
+        raise ValueError(f"training set features are {stored}; expected {list(FEATURES)}")
+    index = {name: i for i, name in enumerate(training.attrs["classes"])}
+    target = np.array([index[name] for name in _names(training["class"].values)], dtype=np.int16)
+    standardise = FunctionTransformer(
+        _standardise,
+        kw_args={"mean": training["feature_mean"].values, "std": training["feature_std"].values},
+    )
+    model = make_pipeline(standardise, KNeighborsClassifier(n_neighbors=_check_k(k, target.size), n_jobs=n_jobs))
+    return model.fit(features, target)
+
+
+def _label_attrs(classes: Sequence[str]) -> dict:
+    return {
+        "long_name": "surface finish class",
+        "flag_values": list(range(len(classes))),
+        "flag_meanings": " ".join(classes),
+        "comment": f"{UNCLASSIFIED} = unclassified (a feature is missing)",
+    }
+
+
+def classify(features: xr.Dataset, training: xr.Dataset, *, k: int = 1, n_jobs: int | None = None) -> xr.DataArray:
+    """Class of every pixel of a feature image by k-nearest neighbours.
+
+    Parameters
+    ----------
+    features : Dataset (y, x)
+        With :data:`FEATURES` (output of :func:`surffin.features.features`).
+    training : Dataset
+        Output of :func:`training_set` or :func:`combine_training`.
+    k : int, default 1
+        Number of neighbours.
+    n_jobs : int, optional
+        Parallel jobs of the neighbour search.
+
+    Returns
+    -------
+    (y, x) DataArray of int16
+        Class index into ``training.attrs["classes"]`` (sorted class names),
+        -1 where any feature is NaN; CF attrs ``flag_values`` (0..K-1) and
+        ``flag_meanings`` (the class names, space-separated). Computed eagerly:
+        all finite pixels are predicted at once.
+    """
+    model = fit_classifier(training, k, n_jobs=n_jobs)
+    values, finite = _feature_matrix(features)
+    labels = np.full(values.shape[0], UNCLASSIFIED, dtype=np.int16)
+    if finite.any():
+        labels[finite] = model.predict(values[finite])
+    shape = (features.sizes["y"], features.sizes["x"])
+    out = xr.DataArray(labels.reshape(shape), dims=("y", "x"), coords={"y": features["y"], "x": features["x"]})
+    out.attrs = {**_label_attrs(list(training.attrs["classes"])), "k": int(k)}
+    return out
+
+
+def _filter_image(label: np.ndarray, size: int, kind: str) -> np.ndarray:
+    """Median or majority filter (H, W) int16 of a label image; -1 neither votes nor changes."""
+    label = label.astype(np.int32)
+    valid = label >= 0
+    if not valid.any():
+        return np.full(label.shape, UNCLASSIFIED, dtype=np.int16)
+    counts = np.empty((int(label.max()) + 1, *label.shape), dtype=np.int32)
+    for c in range(counts.shape[0]):
+        votes = (label == c).astype(np.uint8)
+        counts[c] = cv2.boxFilter(votes, cv2.CV_32S, (size, size), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    if kind == "median":
+        # lower median: the smallest class with at least half of the votes at or below it
+        filtered = np.argmax(2 * np.cumsum(counts, axis=0) >= counts.sum(axis=0), axis=0)
+    else:
+        best = counts.max(axis=0)
+        centre = np.take_along_axis(counts, np.maximum(label, 0)[None], axis=0)[0]
+        filtered = np.where(centre == best, label, np.argmax(counts, axis=0))
+    return np.where(valid, filtered, UNCLASSIFIED).astype(np.int16)
+
+
+def filter_labels(label: xr.DataArray, *, kind: str = "median", size: int = 5) -> xr.DataArray:
+    """Remove isolated errors from a label image with a median or majority filter.
+
+    Parameters
+    ----------
+    label : (..., y, x) DataArray of int
+        Class indices 0..K-1, -1 = unclassified.
+    kind : {"median", "majority"}
+        ``"median"``: the paper's median of the class indices in the window
+        (the lower median when the number of votes is even); it depends on the
+        order of the classes (module docstring). ``"majority"``: the most
+        frequent class in the window; on a tie the centre pixel keeps its
+        class if it is among the most frequent, else the smallest tied index.
+    size : int, default 5
+        Odd side of the square window, pixels.
+
+    Returns
+    -------
+    (..., y, x) DataArray of int16
+        Filtered labels, attrs of ``label``. Unclassified pixels (-1) and
+        pixels outside the image do not vote, and unclassified pixels stay
+        unclassified: the filter never invents a class where a feature is
+        missing. Lazy on dask input.
+    """
+    if kind not in _FILTERS:
+        raise ValueError(f"kind must be one of {_FILTERS}, got {kind!r}")
+    size = _check_size(size)
+    if not np.issubdtype(label.dtype, np.integer):
+        raise ValueError(f"label must hold integer class indices, got dtype {label.dtype}")
+    if not {"y", "x"} <= set(label.dims):
+        raise ValueError(f"label must have dims (..., y, x), got {label.dims}")
+    out = _image_filter(label, _filter_image, size // 2, UNCLASSIFIED, np.int16, size=size, kind=kind)
+    out.attrs = {**label.attrs, "filter": kind, "filter_size": size}
+    return out
+
+
+def _on_label_grid(truth, label: xr.DataArray) -> np.ndarray:
+    """The truth labels (y, x) at the sensor pixels of ``label``."""
+    if isinstance(truth, xr.DataArray):
+        try:
+            return truth.sel(y=label["y"].values, x=label["x"].values).transpose("y", "x").values
+        except KeyError as exc:
+            raise ValueError(f"truth does not cover the pixels of the label image ({exc})") from exc
+    truth = np.asarray(truth)
+    rows, cols = label["y"].values, label["x"].values
+    if truth.ndim != 2 or rows.max() >= truth.shape[0] or cols.max() >= truth.shape[1]:
+        raise ValueError(
+            f"truth of shape {truth.shape} does not cover sensor rows {rows.min()}..{rows.max()}, "
+            f"columns {cols.min()}..{cols.max()} of the label image"
+        )
+    return truth[np.ix_(rows, cols)]
+
+
+def _check_indices(values: np.ndarray, n_classes: int, what: str) -> None:
+    if values.size and (values.min() < -1 or values.max() >= n_classes):
+        raise ValueError(f"{what} spans {values.min()}..{values.max()} but names {n_classes} classes")
+
+
+def score(label: xr.DataArray, truth_label, truth_classes: Sequence[str], classes: Sequence[str]) -> dict:
+    """Accuracy of a label image against ground truth, matching classes by name.
+
+    Parameters
+    ----------
+    label : (y, x) DataArray of int
+        Class indices into ``classes``, -1 = unclassified, with sensor coordinates.
+    truth_label : (height, width) ndarray or (y, x) DataArray of int
+        Truth class indices into ``truth_classes``, -1 = not scored: a whole
+        sensor image (as :func:`surffin.campaign.read_truth` returns) indexed
+        by the sensor coordinates of ``label``, or a DataArray selected by them.
+    truth_classes : sequence of str
+        Names of the truth indices 0..; their order need not match ``classes``.
+    classes : sequence of str
+        Names of the label indices 0..K-1.
+
+    Returns
+    -------
+    dict (JSON-serialisable)
+        ``accuracy``: correct / scored pixels (pixels whose truth is >= 0;
+        unclassified counts as wrong), None if none is scored; ``n_scored``,
+        ``n_correct``; ``recall`` and ``support`` per truth class name (recall
+        None without support); ``confusion``: counts [truth row][predicted
+        column], rows ``confusion_rows`` (``classes``, then truth classes not
+        among them), columns ``confusion_columns`` (``classes``, then
+        ``"(unclassified)"``).
+    """
+    classes, truth_classes = list(classes), list(truth_classes)
+    _check_grid(label, "label")
+    predicted = np.asarray(label.transpose("y", "x").values)
+    truth = np.asarray(_on_label_grid(truth_label, label))
+    _check_indices(predicted, len(classes), "label")
+    _check_indices(truth, len(truth_classes), "truth label")
+    rows = classes + [name for name in truth_classes if name not in classes]
+    row_of_truth = np.array([rows.index(name) for name in truth_classes], dtype=np.int64)
+    scored = truth >= 0
+    truth_rows = row_of_truth[truth[scored]]
+    columns = np.where(predicted[scored] >= 0, predicted[scored], len(classes))
+    n_columns = len(classes) + 1
+    cells = np.bincount(truth_rows * n_columns + columns, minlength=len(rows) * n_columns)
+    confusion = cells.reshape(len(rows), n_columns)
+    diagonal = np.array([confusion[i, i] if i < len(classes) else 0 for i in range(len(rows))])
+    support = confusion.sum(axis=1)
+    n_scored, n_correct = int(support.sum()), int(diagonal.sum())
+    return {
+        "accuracy": n_correct / n_scored if n_scored else None,
+        "n_scored": n_scored,
+        "n_correct": n_correct,
+        "recall": {name: (int(d) / int(s) if s else None) for name, d, s in zip(rows, diagonal, support)},
+        "support": {name: int(s) for name, s in zip(rows, support)},
+        "confusion": confusion.tolist(),
+        "confusion_rows": rows,
+        "confusion_columns": classes + [_UNCLASSIFIED_NAME],
+    }
+
+
+def class_fractions(label: xr.DataArray, classes: Sequence[str]) -> dict:
+    """Share of the pixels of a label image in each class.
+
+    Parameters
+    ----------
+    label : (y, x) DataArray of int
+        Class indices into ``classes``, -1 = unclassified.
+    classes : sequence of str
+        Names of the label indices 0..K-1.
+
+    Returns
+    -------
+    dict (JSON-serialisable)
+        ``n_pixels``; ``fractions``: class name -> share of all pixels;
+        ``unclassified``: share of the -1 pixels (the shares sum to 1).
+    """
+    values = np.asarray(label.values).ravel()
+    _check_indices(values, len(classes), "label")
+    counts = np.bincount(values + 1, minlength=len(classes) + 1)
+    total = values.size
+    shares = counts / total if total else np.zeros(counts.shape)
+    return {
+        "n_pixels": int(total),
+        "fractions": {name: float(share) for name, share in zip(classes, shares[1:])},
+        "unclassified": float(shares[0]),
+    }

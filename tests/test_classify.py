@@ -1,0 +1,268 @@
+"""Training sets, k-NN classification, label filters and scores (surffin.classify)."""
+
+import json
+
+import numpy as np
+import pytest
+import scipy.ndimage
+import xarray as xr
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+from sklearn.neighbors import KNeighborsClassifier
+
+from surffin.campaign import Roi
+from surffin.classify import (
+    FEATURES,
+    class_fractions,
+    classify,
+    combine_training,
+    filter_labels,
+    fit_classifier,
+    score,
+    training_set,
+)
+from surffin.errors import SurffinError
+from surffin.store import open_store, write_store
+
+Y0, X0 = 100, 60
+"""Sensor position of the feature grids' top-left pixel."""
+
+CENTRES = {"S1": (0.9, 1.2, 0.010), "S2": (0.6, 2.0, 0.030), "S3": (0.3, 0.8, 0.020)}
+"""Well-separated class centres (R0, n, variability)."""
+
+
+def feature_image(centre, shape=(12, 16), spread=0.02, seed=0, y0=Y0, x0=X0):
+    """A features Dataset (y, x): per-feature Gaussian scatter of relative size ``spread`` about ``centre``."""
+    rng = np.random.default_rng(seed)
+    coords = {"y": np.arange(y0, y0 + shape[0]), "x": np.arange(x0, x0 + shape[1])}
+    return xr.Dataset(
+        {
+            name: (("y", "x"), value * (1 + spread * rng.standard_normal(shape)))
+            for name, value in zip(FEATURES, centre)
+        },
+        coords=coords,
+    )
+
+
+def specimens(seed=0):
+    """Training items in reverse class order (the label order must not depend on it)."""
+    return {
+        f"spec{k}": (feature_image(CENTRES[name], seed=seed + k), name, None)
+        for k, name in enumerate(sorted(CENTRES, reverse=True))
+    }
+
+
+def test_training_set_honours_sensor_rois_and_drops_nan():
+    ds = feature_image(CENTRES["S1"])
+    ds["n"][3, 5] = np.nan  # sensor (103, 65): inside the roi
+    ds["R0"][0, 0] = np.nan  # outside it
+    roi = Roi((Y0 + 2, Y0 + 6), (X0 + 4, X0 + 9))
+    training = training_set({"a": (ds, "S1", roi), "b": (feature_image(CENTRES["S2"], seed=1), "S2", None)})
+    a = training.where(training["item"] == "a", drop=True)
+    assert a.sizes["sample"] == 4 * 5 - 1
+    assert ((a["y"] >= Y0 + 2) & (a["y"] < Y0 + 6) & (a["x"] >= X0 + 4) & (a["x"] < X0 + 9)).all()
+    assert (103, 65) not in set(zip(a["y"].values.tolist(), a["x"].values.tolist()))
+    # each sample carries the features of its sensor pixel
+    first = a.isel(sample=0)
+    np.testing.assert_array_equal(
+        first["features"].values, [ds[name].sel(y=first["y"], x=first["x"]).item() for name in FEATURES]
+    )
+    assert training.sizes["sample"] == 19 + 12 * 16
+    assert training["feature"].values.tolist() == list(FEATURES)
+    assert training["features"].dtype == np.float64
+    assert set(training["class"].values.tolist()) == {"S1", "S2"}
+    assert training.attrs["classes"] == ["S1", "S2"] and training.attrs["items"] == ["a", "b"]
+    np.testing.assert_allclose(training["feature_mean"], training["features"].mean("sample"), rtol=1e-14)
+    np.testing.assert_allclose(training["feature_std"], training["features"].std("sample"), rtol=1e-14)
+
+
+def test_training_item_without_finite_pixel_is_an_error():
+    ds = feature_image(CENTRES["S1"])
+    ds["variability"][:4] = np.nan
+    with pytest.raises(SurffinError, match="'a'.*no pixel inside"):
+        training_set({"a": (ds, "S1", Roi((Y0, Y0 + 4), (X0, X0 + 16)))})
+
+
+def test_classify_separated_clusters_exactly():
+    training = training_set(specimens())
+    assert training.attrs["classes"] == ["S1", "S2", "S3"]
+    for k, name in enumerate(["S1", "S2", "S3"]):
+        scene = feature_image(CENTRES[name], seed=10 + k)
+        scene["R0"][2, 3] = np.nan
+        label = classify(scene, training, k=3, n_jobs=1)
+        assert label.dtype == np.int16 and label.dims == ("y", "x")
+        assert label["y"][0] == Y0
+        assert label.values[2, 3] == -1
+        expected = np.full(label.shape, k)
+        expected[2, 3] = -1
+        np.testing.assert_array_equal(label.values, expected)
+        assert label.attrs["flag_values"] == [0, 1, 2]
+        assert label.attrs["flag_meanings"] == "S1 S2 S3"
+
+
+def test_standardisation_keeps_a_huge_feature_from_dominating():
+    # R0 separates the classes; n is the same noise for both, on a scale 1e4 times larger
+    rng = np.random.default_rng(4)
+
+    def item(r0, seed):
+        ds = feature_image((r0, 1.0, 0.02), shape=(30, 30), spread=0.01, seed=seed)
+        ds["n"][:] = rng.normal(0, 1e4, (30, 30))
+        return ds
+
+    training = training_set({"lo": (item(0.5, 1), "A", None), "hi": (item(0.6, 2), "B", None)})
+    scene_a, scene_b = item(0.5, 3), item(0.6, 4)
+    assert (classify(scene_a, training).values == 0).mean() > 0.99
+    assert (classify(scene_b, training).values == 1).mean() > 0.99
+    # the same neighbour search on raw features is no better than a coin
+    raw = KNeighborsClassifier(1).fit(training["features"].values, training["class"].values)
+    stacked = np.stack([scene_a[name].values.ravel() for name in FEATURES], axis=1)
+    assert (raw.predict(stacked) == "A").mean() < 0.7
+
+
+def test_classifier_uses_the_stored_standardisation():
+    training = training_set(specimens())
+    model = fit_classifier(training, 1)
+    z = model[0].transform(training["features"].values)
+    np.testing.assert_allclose(z.mean(axis=0), 0, atol=1e-12)
+    np.testing.assert_allclose(z.std(axis=0), 1, rtol=1e-12)
+    with pytest.raises(ValueError, match="k must"):
+        fit_classifier(training, 0)
+
+
+def test_combine_training_through_zarr(tmp_path):
+    first = training_set(dict(list(specimens().items())[:2]))  # S3 and S2
+    second = training_set({"other": (feature_image(CENTRES["S1"], seed=7), "S1", None)})
+    write_store(first, tmp_path / "first.zarr")
+    combined = combine_training(open_store(tmp_path / "first.zarr"), second)
+    assert combined.sizes["sample"] == first.sizes["sample"] + second.sizes["sample"]
+    assert combined.attrs["classes"] == ["S1", "S2", "S3"]
+    assert combined.attrs["items"] == ["spec0", "spec1", "other"]
+    pooled = np.concatenate([first["features"].values, second["features"].values])
+    np.testing.assert_allclose(combined["feature_mean"], pooled.mean(axis=0), rtol=1e-14)
+    np.testing.assert_allclose(combined["feature_std"], pooled.std(axis=0), rtol=1e-14)
+    # the pooled set classifies like one built in a single step
+    scene = feature_image(CENTRES["S2"], seed=20)
+    np.testing.assert_array_equal(classify(scene, combined).values, classify(scene, training_set(specimens())).values)
+
+
+def brute_filter(label, size, kind):
+    """Label filter pixel by pixel: -1 and outside pixels do not vote, -1 stays -1."""
+    r = size // 2
+    padded = np.pad(label, r, constant_values=-1)
+    out = label.copy()
+    for i, j in np.ndindex(label.shape):
+        if label[i, j] < 0:
+            continue
+        votes = padded[i : i + size, j : j + size]
+        votes = np.sort(votes[votes >= 0])
+        if kind == "median":
+            out[i, j] = votes[(votes.size - 1) // 2]
+        else:
+            counts = np.bincount(votes)
+            best = np.flatnonzero(counts == counts.max())
+            out[i, j] = label[i, j] if label[i, j] in best else best[0]
+    return out
+
+
+def labels(values, y0=Y0, x0=X0):
+    values = np.asarray(values, dtype=np.int16)
+    coords = {"y": np.arange(y0, y0 + values.shape[0]), "x": np.arange(x0, x0 + values.shape[1])}
+    return xr.DataArray(values, dims=("y", "x"), coords=coords, attrs={"flag_meanings": "S1 S2 S3"})
+
+
+@pytest.mark.parametrize("kind", ["median", "majority"])
+def test_filters_remove_salt_noise(kind):
+    clean = np.zeros((30, 40), dtype=np.int16)
+    clean[:, 13:26] = 2
+    clean[:, 26:] = 1
+    noisy = clean.copy()
+    rng = np.random.default_rng(0)
+    # isolated errors on a 5-pixel lattice: never two in one 5 x 5 window
+    rows, cols = np.meshgrid(np.arange(2, 30, 5), np.arange(1, 40, 5), indexing="ij")
+    pick = rng.random(rows.shape) < 0.7
+    noisy[rows[pick], cols[pick]] = (clean[rows[pick], cols[pick]] + rng.integers(1, 3, pick.sum())) % 3
+    assert (noisy != clean).sum() > 20
+    out = filter_labels(labels(noisy), kind=kind, size=5)
+    assert out.dtype == np.int16 and out.attrs["flag_meanings"] == "S1 S2 S3"
+    np.testing.assert_array_equal(out.values, clean)
+
+
+def test_median_matches_scipy_inside_the_image():
+    rng = np.random.default_rng(1)
+    label = rng.integers(0, 4, (20, 25))
+    out = filter_labels(labels(label), kind="median", size=5).values
+    np.testing.assert_array_equal(out[2:-2, 2:-2], scipy.ndimage.median_filter(label, size=5)[2:-2, 2:-2])
+
+
+def test_median_depends_on_class_order_and_majority_does_not():
+    # 10 votes of class 0, 5 of class 1 (the centre column) and 10 of class 2
+    window = np.array([[0, 0, 1, 2, 2]] * 5)
+    assert filter_labels(labels(window), kind="median").values[2, 2] == 1
+    assert filter_labels(labels(window), kind="majority").values[2, 2] in (0, 2)
+    swapped = np.where(window == 1, 2, np.where(window == 2, 1, window))
+    assert filter_labels(labels(swapped), kind="median").values[2, 2] == 1
+
+
+def test_unclassified_pixels_neither_vote_nor_change():
+    label = np.full((5, 5), -1)
+    label[2, 2] = 0
+    label[0, :3] = 1
+    # the centre sees one 0 and three 1s: -1 (sixteen of them) would win if it voted
+    for kind in ("median", "majority"):
+        out = filter_labels(labels(label), kind=kind).values
+        assert out[2, 2] == 1
+        np.testing.assert_array_equal(out == -1, label == -1)
+    assert (filter_labels(labels(np.full((4, 4), -1))).values == -1).all()
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    label=hnp.arrays(np.int16, st.tuples(st.integers(1, 14), st.integers(1, 14)), elements=st.integers(-1, 4)),
+    size=st.sampled_from([1, 3, 5]),
+    kind=st.sampled_from(["median", "majority"]),
+    chunk=st.integers(1, 6),
+)
+def test_filters_match_brute_force_on_any_chunks(label, size, kind, chunk):
+    expected = brute_filter(label, size, kind)
+    np.testing.assert_array_equal(filter_labels(labels(label), kind=kind, size=size).values, expected)
+    lazy = filter_labels(labels(label).chunk({"y": chunk, "x": chunk + 1}), kind=kind, size=size)
+    np.testing.assert_array_equal(lazy.values, expected)
+
+
+def test_score_by_hand():
+    classes = ["S1", "S2", "S3"]
+    truth_classes = ["S3", "S1", "S9"]  # another order, and a class the classifier lacks
+    # label on the crop rows 100-101, columns 60-63 of a 110 x 70 sensor
+    label = labels([[0, 0, 2, -1], [1, 2, 2, 0]])
+    truth = np.full((110, 70), -1)
+    truth[100:102, 60:64] = [[1, 1, 0, 0], [1, -1, 2, 0]]  # S1 S1 S3 S3 / S1 . S9 S3
+    result = score(label, truth, truth_classes, classes)
+    # scored 7: S1 -> S1, S1, S2 (2 of 3); S3 -> S3, unclassified, S1 (1 of 3); S9 -> S3 (0 of 1)
+    assert result["n_scored"] == 7 and result["n_correct"] == 3
+    assert result["accuracy"] == pytest.approx(3 / 7)
+    assert result["recall"] == {"S1": pytest.approx(2 / 3), "S2": None, "S3": pytest.approx(1 / 3), "S9": 0.0}
+    assert result["support"] == {"S1": 3, "S2": 0, "S3": 3, "S9": 1}
+    assert result["confusion_rows"] == ["S1", "S2", "S3", "S9"]
+    assert result["confusion_columns"] == ["S1", "S2", "S3", "(unclassified)"]
+    assert result["confusion"] == [[2, 1, 0, 0], [0, 0, 0, 0], [1, 0, 1, 1], [0, 0, 1, 0]]
+    json.dumps(result)
+    # the same truth as a DataArray on sensor coordinates
+    on_grid = xr.DataArray(truth, dims=("y", "x"), coords={"y": np.arange(110), "x": np.arange(70)})
+    assert score(label, on_grid, truth_classes, classes) == result
+
+
+def test_score_maps_classes_by_name():
+    label = labels([[0, 1, 2]])
+    truth = np.zeros((Y0 + 1, X0 + 3), dtype=int)
+    truth[Y0, X0 : X0 + 3] = [2, 1, 0]
+    assert score(label, truth, ["S3", "S2", "S1"], ["S1", "S2", "S3"])["accuracy"] == 1.0
+    assert score(label, truth, ["S1", "S2", "S3"], ["S1", "S2", "S3"])["accuracy"] == pytest.approx(1 / 3)
+    with pytest.raises(ValueError, match="does not cover"):
+        score(labels([[0]], y0=200), truth, ["S1"], ["S1"])
+
+
+def test_class_fractions():
+    result = class_fractions(labels([[0, 0, 2, -1], [2, 2, 2, 0]]), ["S1", "S2", "S3"])
+    assert result == {"n_pixels": 8, "fractions": {"S1": 0.375, "S2": 0.0, "S3": 0.5}, "unclassified": 0.125}
+    json.dumps(result)
