@@ -94,7 +94,11 @@ def _encoding(ds: xr.Dataset) -> dict[str, dict]:
 
 def _strings_as_objects(ds: xr.Dataset) -> xr.Dataset:
     # Fixed-width unicode has no zarr v3 specification; variable-length strings do.
-    fixed = {name: ds[name].astype(object) for name, var in ds.variables.items() if var.dtype.kind == "U"}
+    # Strings are small labels: they are held in memory, never as dask arrays,
+    # whose object dtype xarray would have to load to encode anyway.
+    fixed = {
+        name: ds[name].compute().astype(object) for name, var in ds.variables.items() if var.dtype.kind in "UO"
+    }
     coords = {name: arr for name, arr in fixed.items() if name in ds.coords}
     data = {name: arr for name, arr in fixed.items() if name not in ds.coords}
     return ds.assign_coords(coords).assign(data)
@@ -124,8 +128,8 @@ def write_store(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     clean_leftovers(path)
-    ds = _strings_as_objects(ds).drop_encoding()
-    ds = ds.chunk(_chunking(ds, DEFAULT_CHUNKS if chunks is None else chunks))
+    ds = ds.drop_encoding().chunk(_chunking(ds, DEFAULT_CHUNKS if chunks is None else chunks))
+    ds = _strings_as_objects(ds)
     partial = path.parent / f".{path.name}{_PARTIAL}{uuid.uuid4().hex[:12]}"
     try:
         with warnings.catch_warnings():
