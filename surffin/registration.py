@@ -1,0 +1,701 @@
+"""Co-registration: every view of an item on the reference view's pixel grid (METHOD.md step 4).
+
+The mapping and the resampling are separate steps.
+
+:func:`registration_maps` finds, for every pixel of the reference grid (the
+item's cropped sensor grid), the sub-pixel sensor position ``(map_x, map_y)`` in
+each view where the same surface point is seen:
+
+- ``"poses"``: the reference pixel's measured 3-D point goes to the world frame
+  with the reference pose, into the other camera's frame with the inverse of its
+  pose, and through the pinhole intrinsics onto its sensor. A point that view
+  sees something closer than (beyond a tolerance) is occluded. Works for any
+  surface shape. The point's depth noise moves it along the reference ray, i.e.
+  along the epipolar line of the other view; the range is therefore first
+  averaged over a small window of neighbours on the same surface.
+- ``"homography"``: SIFT keypoints (by default) on locally contrast-normalised
+  log intensity, matched with Lowe's ratio test, and a robust homography (USAC
+  MAGSAC++); exact for one plane only, as in the paper. On a specimen raised
+  from its board the homography follows the plane with most keypoints (usually
+  the board) and the other is off by the parallax; an ``roi`` option restricts
+  the reference keypoints to the plane wanted.
+- ``"auto"``: poses when every view has one and the camera has intrinsics,
+  else the homography.
+
+:func:`warp` resamples any (view, y, x) image at the maps by NaN-aware bilinear
+interpolation; :func:`register` warps an item's reflectance and AOI.
+:func:`registration_error` scores maps against the synthetic camera's truth.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import cv2
+import numpy as np
+import xarray as xr
+
+from surffin.errors import RegistrationError
+
+__all__ = [
+    "METHODS",
+    "DETECTORS",
+    "HOMOGRAPHY_OPTIONS",
+    "POSE_OPTIONS",
+    "registration_maps",
+    "warp",
+    "register",
+    "registration_error",
+]
+
+#: Methods of :func:`registration_maps`.
+METHODS = ("auto", "poses", "homography")
+
+# OpenCV 5 moved AKAZE to opencv-contrib (cv2.xfeatures2d); use it where it is installed.
+_AKAZE = next(
+    (module.AKAZE_create for module in (cv2, getattr(cv2, "xfeatures2d", None)) if hasattr(module, "AKAZE_create")),
+    None,
+)
+
+#: Keypoint detectors of the homography method: factory and descriptor norm. SIFT is the
+#: default, chosen by measurement (benchmarks/bench_registration.py: most inliers per match,
+#: lowest error); ORB keeps up to 5000 keypoints; "akaze" is listed only when the installed
+#: OpenCV has it.
+DETECTORS = {
+    "sift": (cv2.SIFT_create, cv2.NORM_L2),
+    "orb": (lambda: cv2.ORB_create(nfeatures=5000), cv2.NORM_HAMMING),
+} | ({"akaze": (_AKAZE, cv2.NORM_HAMMING)} if _AKAZE else {})
+
+#: Options of the ``"homography"`` method and their defaults.
+HOMOGRAPHY_OPTIONS = {
+    "detector": "sift",  # a key of DETECTORS
+    "ratio": 0.75,  # Lowe's ratio test: best / second-best descriptor distance
+    "threshold": 1.5,  # MAGSAC++ inlier threshold, pixels
+    "min_matches": 20,  # fewer matches after the ratio test: RegistrationError
+    "min_inliers": 12,  # fewer homography inliers: RegistrationError
+    "contrast_sigma": 12.0,  # pixels: window of the local contrast normalisation of log intensity
+    "roi": None,  # {"y": [y0, y1], "x": [x0, x1]}: reference keypoints only there (sensor, half-open)
+}
+
+#: Options of the ``"poses"`` method and their defaults.
+POSE_OPTIONS = {
+    "tolerance": 0.005,  # metres: ranges closer than max(tolerance, relative * range) are one surface
+    "relative": 0.01,
+    "smooth": 9,  # odd window (pixels) averaging the reference range over one surface; 1 = off
+}
+
+_FEATURE_MARGIN = 4  # pixels: no keypoint this close to an invalid pixel or the border
+_CLIP = 3.0  # local standard deviations mapped to the ends of the 8-bit range
+_RIGID_TOLERANCE = 1e-4  # |R^T R - I| of a pose (poses written with ~5 digits pass; 1e-4 rad ~ 0.05 mm at 0.5 m)
+_MAGSAC_ITERATIONS = 10000
+_MAGSAC_CONFIDENCE = 0.9999
+_MAP_ATTRS = {
+    "map_x": {"units": "pixel", "long_name": "sensor column of the reference pixel's surface point in each view"},
+    "map_y": {"units": "pixel", "long_name": "sensor row of the reference pixel's surface point in each view"},
+}
+
+
+# ---------------------------------------------------------------------------------------------
+# numpy kernels
+
+
+def _bilinear(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """NaN-aware bilinear samples of images at sub-pixel array positions.
+
+    Parameters
+    ----------
+    image : (..., H, W) ndarray
+        NaN marks a missing pixel; H, W >= 2.
+    col, row : (..., h, w) ndarray
+        Array positions (0 = first column / row), leading dims broadcasting
+        against ``image``'s; NaN = no sample.
+
+    Returns
+    -------
+    (..., h, w) ndarray of float64
+        NaN where the position is NaN or outside ``[0, W - 1] x [0, H - 1]``, or
+        where a neighbour with a non-zero weight is NaN (a missing pixel never
+        bleeds into its neighbours, and nothing is extrapolated).
+    """
+    height, width = image.shape[-2:]
+    with np.errstate(invalid="ignore"):
+        inside = (col >= 0) & (col <= width - 1) & (row >= 0) & (row <= height - 1)
+    col = np.where(inside, col, 0.0)
+    row = np.where(inside, row, 0.0)
+    c0 = np.minimum(np.floor(col), width - 2).astype(np.intp)
+    r0 = np.minimum(np.floor(row), height - 2).astype(np.intp)
+    fc = col - c0
+    fr = row - r0
+    lead = np.broadcast_shapes(image.shape[:-2], col.shape[:-2])
+    flat = np.broadcast_to(image, (*lead, height, width)).reshape(*lead, height * width)
+    base = np.broadcast_to(r0 * width + c0, (*lead, *col.shape[-2:])).reshape(*lead, -1)
+    total = np.zeros(base.shape)
+    for offset, weight in (
+        (0, (1.0 - fr) * (1.0 - fc)),
+        (1, (1.0 - fr) * fc),
+        (width, fr * (1.0 - fc)),
+        (width + 1, fr * fc),
+    ):
+        weight = np.broadcast_to(weight, (*lead, *col.shape[-2:])).reshape(*lead, -1)
+        values = np.take_along_axis(flat, base + offset, axis=-1)
+        total += np.where(weight > 0, values * weight, 0.0)
+    out = total.reshape(*lead, *col.shape[-2:])
+    return np.where(inside, out, np.nan)
+
+
+def _warp_kernel(image, map_x, map_y, *valid, origin: tuple[int, int]) -> np.ndarray:
+    """:func:`_bilinear` at sensor positions of an image whose first pixel is sensor ``origin`` (row, col)."""
+    image = np.asarray(image, dtype=np.float64)
+    if valid:
+        image = np.where(valid[0], image, np.nan)
+    return _bilinear(image, map_x - origin[1], map_y - origin[0])
+
+
+def _outside_to_nan(col: np.ndarray, row: np.ndarray, columns: np.ndarray, rows: np.ndarray) -> None:
+    """Set positions outside the sensor span ``[first, last]`` of ``columns`` / ``rows`` to NaN, in place."""
+    with np.errstate(invalid="ignore"):
+        outside = (col < columns[0]) | (col > columns[-1]) | (row < rows[0]) | (row > rows[-1])
+    col[outside] = np.nan
+    row[outside] = np.nan
+
+
+def _smooth_range(points: np.ndarray, window: int, tolerance: float, relative: float) -> np.ndarray:
+    """Average each point's range over the neighbours of its window on the same surface.
+
+    Parameters
+    ----------
+    points : (H, W, 3) ndarray of float64, metres
+        Camera frame; NaN = invalid.
+    window : int
+        Odd side of the square neighbourhood; 1 returns ``points``.
+    tolerance, relative : float
+        A neighbour counts when its range is within ``max(tolerance, relative * r)``
+        of the centre's range ``r``.
+
+    Returns
+    -------
+    (H, W, 3) ndarray of float64
+        The points moved along their rays to the mean range (noise along the ray
+        shrinks by up to ``window``).
+    """
+    if window == 1:
+        return points
+    height, width = points.shape[:2]
+    distance = np.linalg.norm(points, axis=-1)
+    padded = np.pad(distance, window // 2, constant_values=np.nan)
+    gap = np.maximum(tolerance, relative * distance)
+    total = np.zeros_like(distance)
+    count = np.zeros_like(distance)
+    for dy in range(window):
+        for dx in range(window):
+            neighbour = padded[dy : dy + height, dx : dx + width]
+            with np.errstate(invalid="ignore"):
+                near = np.abs(neighbour - distance) <= gap
+            total += np.where(near, neighbour, 0.0)
+            count += near
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return points * (total / count / distance)[..., None]
+
+
+def _project(points: np.ndarray, transform: np.ndarray, intrinsics: Mapping[str, float]):
+    """Sensor positions and ranges of points in another camera.
+
+    Parameters
+    ----------
+    points : (H, W, 3) ndarray, metres
+        Camera frame of camera A.
+    transform : (4, 4) ndarray
+        From camera A's frame to camera B's.
+    intrinsics : mapping
+        ``fx``, ``fy``, ``cx``, ``cy`` of camera B, pixels.
+
+    Returns
+    -------
+    col, row : (H, W) ndarray of float64
+        Sensor column and row in camera B; NaN behind it or for NaN points.
+    distance : (H, W) ndarray of float64, metres
+        Range of each point from camera B's centre.
+    """
+    local = points @ transform[:3, :3].T + transform[:3, 3]
+    depth = local[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        front = depth > 0
+        col = np.where(front, intrinsics["fx"] * local[..., 0] / depth + intrinsics["cx"], np.nan)
+        row = np.where(front, intrinsics["fy"] * local[..., 1] / depth + intrinsics["cy"], np.nan)
+    return col, row, np.linalg.norm(local, axis=-1)
+
+
+def _nearest(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """Nearest-pixel samples of ``image`` (H, W) at array positions inside it; NaN where a position is NaN."""
+    known = np.isfinite(col) & np.isfinite(row)
+    c = np.rint(np.where(known, col, 0.0)).astype(np.intp)
+    r = np.rint(np.where(known, row, 0.0)).astype(np.intp)
+    return np.where(known, image[r, c], np.nan)
+
+
+def _pose_map(points, transform, intrinsics, view_points, columns, rows, tolerance, relative):
+    """Map of one view by the poses, with the occlusion test.
+
+    Parameters
+    ----------
+    points : (h, w, 3) ndarray, metres
+        Reference pixels' points, reference camera frame (NaN = invalid).
+    transform : (4, 4) ndarray
+        Reference camera frame to the view's camera frame.
+    intrinsics : mapping
+        Pinhole ``fx``, ``fy``, ``cx``, ``cy``.
+    view_points : (h, w, 3) ndarray, metres
+        The view's own measured points on its cropped grid.
+    columns, rows : (w,), (h,) ndarray of int
+        Sensor indices of the cropped grid.
+    tolerance, relative : float
+        The view measures something closer than the projected point by more
+        than ``max(tolerance, relative * range)``: the point is occluded.
+
+    Returns
+    -------
+    col, row : (h, w) ndarray of float64
+        Sensor positions in the view; NaN where not seen.
+    diagnostics : dict
+        ``mapped`` and ``occluded`` (fractions of the reference pixels) and
+        ``range_rms`` (metres): rms of measured minus projected range over the
+        mapped pixels with a measurement, a check of the poses.
+    """
+    col, row, expected = _project(points, transform, intrinsics)
+    _outside_to_nan(col, row, columns, rows)
+    measured = _nearest(np.linalg.norm(view_points, axis=-1), col - columns[0], row - rows[0])
+    residual = measured - expected
+    with np.errstate(invalid="ignore"):
+        hidden = residual < -np.maximum(tolerance, relative * expected)
+    col[hidden] = np.nan
+    row[hidden] = np.nan
+    seen = np.isfinite(col) & np.isfinite(residual)
+    diagnostics = {
+        "mapped": float(np.isfinite(col).mean()),
+        "occluded": float(hidden.mean()),
+        "range_rms": float(np.sqrt(np.mean(residual[seen] ** 2))) if seen.any() else float("nan"),
+    }
+    return col, row, diagnostics
+
+
+def _feature_image(intensity: np.ndarray, valid: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """An 8-bit image of the surface texture and the mask where keypoints may lie.
+
+    Distance, angle and instrument act on the intensity as smooth factors, so the
+    log intensity minus its local mean, divided by its local standard deviation
+    (Gaussian windows of ``sigma`` pixels, normalised over valid pixels), leaves
+    the texture at the same contrast everywhere, also on weakly textured
+    surfaces beside strong edges; +-3 local standard deviations span 0..255.
+
+    Parameters
+    ----------
+    intensity : (H, W) ndarray
+        Camera intensity.
+    valid : (H, W) ndarray of bool
+    sigma : float, pixels
+        Scale of the local normalisation.
+
+    Returns
+    -------
+    image : (H, W) ndarray of uint8
+        Mid-grey on invalid pixels.
+    mask : (H, W) ndarray of uint8
+        255 at least :data:`_FEATURE_MARGIN` pixels from invalid pixels and the border.
+    """
+    usable = valid & (intensity > 0)
+    level = np.where(usable, np.log(np.where(usable, intensity, 1.0)), 0.0)
+    weight = np.maximum(cv2.GaussianBlur(usable.astype(np.float64), (0, 0), sigma), np.finfo(np.float64).tiny)
+    detail = np.where(usable, level - cv2.GaussianBlur(level, (0, 0), sigma) / weight, 0.0)
+    spread = np.sqrt(cv2.GaussianBlur(detail * detail, (0, 0), sigma) / weight)
+    score = detail / np.maximum(spread, np.finfo(np.float32).eps)
+    scaled = (score + _CLIP) * (255.0 / (2.0 * _CLIP))
+    image = np.where(usable, np.clip(scaled, 0.0, 255.0), 127.5).astype(np.uint8)
+    kernel = np.ones((2 * _FEATURE_MARGIN + 1,) * 2, np.uint8)
+    mask = cv2.erode(usable.astype(np.uint8) * 255, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return image, mask
+
+
+def _keypoints(image: np.ndarray, mask: np.ndarray, detector: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """Keypoint positions (N, 2) (column, row; array coords, float32) and descriptors of one image."""
+    keypoints, descriptors = DETECTORS[detector][0]().detectAndCompute(image, mask)
+    positions = np.array([keypoint.pt for keypoint in keypoints], dtype=np.float32).reshape(-1, 2)
+    return positions, descriptors
+
+
+def _match(reference: tuple, view: tuple, norm: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ratio-test matches between two keypoint sets: positions (M, 2) in the reference and the view."""
+    (ref_pos, ref_desc), (view_pos, view_desc) = reference, view
+    if ref_desc is None or view_desc is None or len(ref_desc) < 2 or len(view_desc) < 2:
+        return np.empty((0, 2), np.float32), np.empty((0, 2), np.float32)
+    pairs = cv2.BFMatcher(norm).knnMatch(ref_desc, view_desc, k=2)
+    table = np.array([(p[0].queryIdx, p[0].trainIdx, p[0].distance, p[1].distance) for p in pairs if len(p) == 2])
+    keep = table[:, 2] < ratio * table[:, 3] if table.size else np.zeros(0, bool)
+    return ref_pos[table[keep, 0].astype(np.intp)], view_pos[table[keep, 1].astype(np.intp)]
+
+
+def _apply_homography(h: np.ndarray, col: np.ndarray, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Image of positions under a homography ``h`` (3, 3); NaN where they map to or beyond infinity."""
+    w = h[2, 0] * col + h[2, 1] * row + h[2, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        front = w > 0
+        u = np.where(front, (h[0, 0] * col + h[0, 1] * row + h[0, 2]) / w, np.nan)
+        v = np.where(front, (h[1, 0] * col + h[1, 1] * row + h[1, 2]) / w, np.nan)
+    return u, v
+
+
+def _fit_homography(src: np.ndarray, dst: np.ndarray, threshold: float) -> tuple[np.ndarray | None, np.ndarray]:
+    """Robust homography ``dst ~ H src`` (USAC MAGSAC++) and the inlier mask (M,) bool."""
+    if len(src) < 4:
+        return None, np.zeros(len(src), bool)
+    matrix, inliers = cv2.findHomography(
+        src, dst, cv2.USAC_MAGSAC, threshold, maxIters=_MAGSAC_ITERATIONS, confidence=_MAGSAC_CONFIDENCE
+    )
+    if matrix is None:
+        return None, np.zeros(len(src), bool)
+    return matrix, inliers.ravel().astype(bool)
+
+
+# ---------------------------------------------------------------------------------------------
+# helpers on the ingest cube
+
+
+def _sensor_indices(coord: xr.DataArray, name: str) -> np.ndarray:
+    """The values of a ``y``/``x`` coordinate, checked to be >= 2 contiguous sensor indices."""
+    values = np.asarray(coord.values)
+    if values.size < 2 or not np.array_equal(values, values[0] + np.arange(values.size)):
+        raise ValueError(f"{name} must be >= 2 contiguous sensor indices (a crop of the sensor), got {values!r:.80}")
+    return values
+
+
+def _options(method: str, options: Mapping, auto: bool) -> dict:
+    """The defaults of ``method`` updated by ``options``; unknown names raise TypeError."""
+    defaults = HOMOGRAPHY_OPTIONS if method == "homography" else POSE_OPTIONS
+    allowed = {**HOMOGRAPHY_OPTIONS, **POSE_OPTIONS} if auto else defaults
+    unknown = sorted(set(options) - set(allowed))
+    if unknown:
+        raise TypeError(f"registration_maps(method={method!r}): unknown options {unknown}; known: {sorted(allowed)}")
+    chosen = {**defaults, **{key: value for key, value in options.items() if key in defaults}}
+    if method == "homography" and chosen["detector"] not in DETECTORS:
+        raise ValueError(f"detector {chosen['detector']!r} is not known; expected one of {sorted(DETECTORS)}")
+    smooth = chosen.get("smooth", 1)
+    if int(smooth) != smooth or smooth < 1 or smooth % 2 == 0:
+        raise ValueError(f"smooth must be an odd integer >= 1, got {chosen['smooth']!r}")
+    return chosen
+
+
+def _poses_usable(ingest: xr.Dataset) -> str | None:
+    """Why the poses method cannot run on ``ingest``, or None when it can."""
+    intrinsics = ingest.attrs.get("camera", {}).get("intrinsics")
+    if not intrinsics:
+        return "the camera has no intrinsics (camera.intrinsics in campaign.yaml)"
+    if "pose" not in ingest:
+        return "no view carries a pose"
+    finite = np.isfinite(np.asarray(ingest["pose"].values)).all(axis=(1, 2))
+    if not finite.all():
+        missing = [str(view) for view, ok in zip(ingest["view"].values, finite) if not ok]
+        return f"views {missing} carry no pose"
+    return None
+
+
+def _check_poses(poses: np.ndarray, views, item: str) -> None:
+    """Every pose is a rigid transform (rotation orthonormal, det +1, last row 0 0 0 1)."""
+    for view, pose in zip(views, poses):
+        rotation = pose[:3, :3]
+        rigid = np.allclose(rotation.T @ rotation, np.eye(3), atol=_RIGID_TOLERANCE) and np.linalg.det(rotation) > 0
+        if not rigid or not np.allclose(pose[3], [0.0, 0.0, 0.0, 1.0]):
+            raise RegistrationError(
+                f"item {item!r}, view {view!r}: the pose is not a rigid camera-to-world transform "
+                f"(rotation must be orthonormal with det +1, last row 0 0 0 1): {pose.tolist()}"
+            )
+
+
+def _identity(grid: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Sensor (column, row) of every pixel of a grid given by its columns and rows, float64 (h, w) each."""
+    columns, rows = grid
+    return tuple(np.meshgrid(columns.astype(np.float64), rows.astype(np.float64)))
+
+
+def _pose_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict):
+    """The poses method: a function of a view index giving (col, row, diagnostics)."""
+    views = [str(view) for view in ingest["view"].values]
+    poses = np.asarray(ingest["pose"].values, dtype=np.float64)
+    _check_poses(poses, views, item)
+    intrinsics = ingest.attrs["camera"]["intrinsics"]
+    xyz = np.asarray(ingest["xyz"].transpose("view", "y", "x", "axis").values, dtype=np.float64)
+    points = _smooth_range(xyz[ref], opts["smooth"], opts["tolerance"], opts["relative"])
+
+    def one(index: int):
+        if index == ref:
+            return *_identity(grid), {"mapped": 1.0, "occluded": 0.0, "range_rms": 0.0}
+        transform = np.linalg.solve(poses[index], poses[ref])
+        return _pose_map(points, transform, intrinsics, xyz[index], *grid, opts["tolerance"], opts["relative"])
+
+    return one
+
+
+def _roi_mask(roi: Mapping | None, grid, item: str) -> np.ndarray | None:
+    """255 inside a sensor roi ``{"y": [y0, y1], "x": [x0, x1]}`` (half-open) on the grid, uint8 (h, w)."""
+    if roi is None:
+        return None
+    columns, rows = grid
+    inside = ((rows >= roi["y"][0]) & (rows < roi["y"][1]))[:, None] & (
+        (columns >= roi["x"][0]) & (columns < roi["x"][1])
+    )[None, :]
+    if not inside.any():
+        raise RegistrationError(f"item {item!r}: roi {dict(roi)} does not overlap the grid (sensor rows "
+                                f"{rows[0]}..{rows[-1]}, columns {columns[0]}..{columns[-1]})")
+    return inside.astype(np.uint8) * 255
+
+
+def _homography_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict):
+    """The homography method: a function of a view index giving (col, row, diagnostics)."""
+    views = [str(view) for view in ingest["view"].values]
+    intensity = np.asarray(ingest["intensity"].values)
+    valid = np.asarray(ingest["valid"].values, dtype=bool)
+    offset = np.array([grid[0][0], grid[1][0]], dtype=np.float32)
+    norm = DETECTORS[opts["detector"]][1]
+    images = [_feature_image(intensity[k], valid[k], opts["contrast_sigma"]) for k in range(len(views))]
+    roi = _roi_mask(opts["roi"], grid, item)
+    if roi is not None:
+        images[ref] = (images[ref][0], images[ref][1] & roi)
+    features = [_keypoints(image, mask, opts["detector"]) for image, mask in images]
+
+    def one(index: int):
+        if index == ref:
+            return *_identity(grid), {"keypoints": len(features[ref][0])}
+        src, dst = _match(features[ref], features[index], norm, opts["ratio"])
+        where = f"item {item!r}, view {views[index]!r} (reference view {views[ref]!r})"
+        if len(src) < opts["min_matches"]:
+            raise RegistrationError(
+                f"{where}: only {len(src)} keypoint matches ({opts['detector']}, ratio {opts['ratio']}; "
+                f"min_matches={opts['min_matches']}): too little common texture for a homography; "
+                f"give the views poses and camera intrinsics (method='poses') or lower min_matches"
+            )
+        src, dst = src + offset, dst + offset
+        matrix, inliers = _fit_homography(src, dst, opts["threshold"])
+        if inliers.sum() < opts["min_inliers"]:
+            raise RegistrationError(
+                f"{where}: only {int(inliers.sum())} of {len(src)} matches fit one homography "
+                f"(threshold {opts['threshold']} px; min_inliers={opts['min_inliers']}): the surface may not be "
+                f"planar or the matches are wrong; use method='poses' or lower min_inliers"
+            )
+        u, v = _apply_homography(matrix, src[inliers, 0], src[inliers, 1])
+        col, row = _apply_homography(matrix, *_identity(grid))
+        _outside_to_nan(col, row, *grid)
+        return col, row, {
+            "keypoints": len(features[index][0]),
+            "matches": len(src),
+            "inliers": int(inliers.sum()),
+            "rms": float(np.sqrt(np.mean((u - dst[inliers, 0]) ** 2 + (v - dst[inliers, 1]) ** 2))),
+            "homography": matrix.tolist(),
+        }
+
+    return one
+
+
+# ---------------------------------------------------------------------------------------------
+# public functions
+
+
+def registration_maps(
+    ingest: xr.Dataset, *, method: str = "auto", reference: str | None = None, **options
+) -> xr.Dataset:
+    """Where each view sees the surface point of every reference pixel.
+
+    Parameters
+    ----------
+    ingest : Dataset
+        An ingest cube (:func:`surffin.ingest.build_cube`): ``xyz`` (view, y,
+        x, axis) metres, camera frame, NaN = invalid (the poses method);
+        ``intensity`` and ``valid`` (view, y, x) (the homography method);
+        ``pose`` (view, row, col) camera-to-world, metres; ``y``/``x`` are
+        contiguous sensor indices. Attrs ``item``, ``reference_view`` and
+        ``camera`` (``intrinsics``: ``fx``, ``fy``, ``cx``, ``cy``). Computed
+        eagerly (the images are small).
+    method : {"auto", "poses", "homography"}
+        ``"auto"`` takes ``"poses"`` when every view has a pose and the camera
+        has intrinsics, else ``"homography"``.
+    reference : str, optional
+        The view whose grid the maps are on; default ``ingest.attrs
+        ["reference_view"]``, else the first view.
+    **options
+        Of the method used, with the defaults of :data:`POSE_OPTIONS` and
+        :data:`HOMOGRAPHY_OPTIONS`; with ``"auto"`` either set is accepted.
+        Poses: ``tolerance`` (metres) and ``relative``: the view measuring a
+        range shorter than the point's by more than ``max(tolerance, relative
+        * range)`` at its nearest pixel hides the point (the same test decides
+        which neighbours are on one surface for smoothing); ``smooth``: odd
+        window (pixels) over which the reference range is averaged (1 = the
+        raw points). Homography: ``detector`` (a key of :data:`DETECTORS`),
+        ``ratio`` (Lowe's test), ``threshold`` (MAGSAC++ inlier threshold,
+        pixels), ``min_matches``, ``min_inliers``, ``contrast_sigma`` (pixels,
+        scale of the local contrast normalisation of the log intensity the
+        keypoints are found on), ``roi`` (``{"y": [y0, y1], "x": [x0, x1]}``,
+        half-open sensor ranges: reference keypoints only there, to choose the
+        plane a homography registers).
+
+    Returns
+    -------
+    Dataset
+        ``map_x``, ``map_y`` (view, y, x) float32, pixels: sensor column and
+        row in each view of the surface point seen by reference pixel (y, x);
+        NaN where that view does not see it (outside its cropped grid, behind
+        it, occluded, or, with poses, where the reference pixel has no valid
+        point). The reference view maps to itself. Attrs: ``item``,
+        ``method``, ``reference_view``, ``parameters`` (the options used) and
+        ``diagnostics``: per view, for ``"homography"`` ``keypoints``,
+        ``matches`` (after the ratio test), ``inliers``, ``rms`` (inlier
+        reprojection, pixels) and ``homography`` (3 x 3, reference sensor
+        coordinates to the view's); for ``"poses"`` ``mapped`` and
+        ``occluded`` (fractions of the reference pixels) and ``range_rms``
+        (metres, measured minus projected range where mapped: checks the
+        poses).
+
+    Raises
+    ------
+    RegistrationError
+        Naming the item and view: too few matches or inliers (homography),
+        poses requested but missing or not rigid, unknown reference view.
+    ValueError, TypeError
+        Unknown method or option, or non-contiguous ``y``/``x``.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method {method!r} is not known; expected one of {METHODS}")
+    item = str(ingest.attrs.get("item", "?"))
+    views = [str(view) for view in ingest["view"].values]
+    reference = reference if reference is not None else ingest.attrs.get("reference_view", views[0])
+    if reference not in views:
+        raise RegistrationError(f"item {item!r}: reference view {reference!r} is not one of its views {views}")
+    why_not = _poses_usable(ingest)
+    chosen = method if method != "auto" else ("poses" if why_not is None else "homography")
+    if chosen == "poses" and why_not is not None:
+        raise RegistrationError(f"item {item!r}: method='poses' needs a pose for every view, but {why_not}")
+    opts = _options(chosen, options, auto=method == "auto")
+    grid = (_sensor_indices(ingest["x"], "x"), _sensor_indices(ingest["y"], "y"))
+    build = _pose_mapper if chosen == "poses" else _homography_mapper
+    mapper = build(ingest, views.index(reference), item, grid, opts)
+    cols, rows, diagnostics = zip(*(mapper(index) for index in range(len(views))))
+    dims = ("view", "y", "x")
+    return xr.Dataset(
+        {
+            "map_x": (dims, np.stack(cols).astype(np.float32), _MAP_ATTRS["map_x"]),
+            "map_y": (dims, np.stack(rows).astype(np.float32), _MAP_ATTRS["map_y"]),
+        },
+        coords={"view": ingest["view"].values, "y": ingest["y"].values, "x": ingest["x"].values},
+        attrs={
+            "item": item,
+            "method": chosen,
+            "reference_view": reference,
+            "parameters": opts,
+            "diagnostics": dict(zip(views, diagnostics)),
+        },
+    )
+
+
+def warp(data: xr.DataArray, maps: xr.Dataset, *, valid: xr.DataArray | None = None) -> xr.DataArray:
+    """Resample every view of an image cube onto the reference grid.
+
+    Parameters
+    ----------
+    data : (view, y, x) DataArray
+        Any per-view image on the views' own (cropped) grids; ``y``/``x`` are
+        contiguous sensor indices. NaN = missing. Numpy- or dask-backed.
+    maps : Dataset
+        From :func:`registration_maps`: ``map_x``, ``map_y`` (view, y, x),
+        sensor positions; its views must equal ``data``'s.
+    valid : (view, y, x) DataArray of bool, optional
+        On ``data``'s grid; False pixels count as missing.
+
+    Returns
+    -------
+    (view, y, x) DataArray
+        On the maps' grid, float (``data``'s float dtype, else float64), attrs
+        of ``data``: bilinear interpolation of each view at its map positions.
+        NaN where the map is NaN, where the position lies outside the view's
+        grid, and where any neighbour with a non-zero weight is missing (never
+        extrapolated, no bleeding of missing pixels). Lazy on dask input.
+    """
+    for name, arr in (("data", data), ("valid", valid)):
+        if arr is not None and set(arr.dims) != {"view", "y", "x"}:
+            raise ValueError(f"warp: {name} must have dims (view, y, x), got {arr.dims}")
+    if list(data["view"].values) != list(maps["view"].values):
+        raise ValueError(
+            f"warp: data views {list(data['view'].values)} differ from the maps' {list(maps['view'].values)}"
+        )
+    origin = (int(_sensor_indices(data["y"], "data y")[0]), int(_sensor_indices(data["x"], "data x")[0]))
+    dtype = data.dtype if np.issubdtype(data.dtype, np.floating) else np.float64
+    source = {"y": "source_y", "x": "source_x"}
+    args = [data.rename(source), maps["map_x"], maps["map_y"]]
+    core = [["source_y", "source_x"], ["y", "x"], ["y", "x"]]
+    if valid is not None:
+        args.append(valid.rename(source))
+        core.append(["source_y", "source_x"])
+    out = xr.apply_ufunc(
+        lambda *arrays: _warp_kernel(*arrays, origin=origin).astype(dtype),
+        *args,
+        input_core_dims=core,
+        output_core_dims=[["y", "x"]],
+        dask="parallelized",
+        output_dtypes=[dtype],
+        dask_gufunc_kwargs={"allow_rechunk": True},
+    )
+    out.attrs = dict(data.attrs)
+    return out.transpose("view", "y", "x").rename(data.name)
+
+
+def register(ds: xr.Dataset, maps: xr.Dataset) -> xr.Dataset:
+    """Warp an item's reflectance and AOI onto the reference grid.
+
+    Parameters
+    ----------
+    ds : Dataset
+        ``reflectance`` and ``aoi`` (view, y, x) (radians), NaN = missing, on
+        the views' own grids; an optional ``valid`` (view, y, x) masks both.
+    maps : Dataset
+        From :func:`registration_maps` for the same item.
+
+    Returns
+    -------
+    Dataset
+        ``reflectance`` and ``aoi`` (view, y, x) on the reference grid (their
+        attrs kept), ``valid`` (view, y, x) bool where both are finite, and
+        ``map_x``, ``map_y``. Attrs: those of ``ds`` and of ``maps``.
+    """
+    missing = [name for name in ("reflectance", "aoi") if name not in ds]
+    if missing:
+        raise ValueError(f"register: the dataset lacks {missing}; it needs reflectance and aoi (view, y, x)")
+    mask = ds["valid"] if "valid" in ds else None
+    out = xr.Dataset({name: warp(ds[name], maps, valid=mask) for name in ("reflectance", "aoi")})
+    out["valid"] = (np.isfinite(out["reflectance"]) & np.isfinite(out["aoi"])).assign_attrs(
+        long_name="registered pixel has reflectance and AOI"
+    )
+    out["map_x"] = maps["map_x"]
+    out["map_y"] = maps["map_y"]
+    out.attrs = {**ds.attrs, **maps.attrs}
+    return out
+
+
+def registration_error(maps: xr.Dataset, u_ref: xr.DataArray, v_ref: xr.DataArray) -> xr.DataArray:
+    """Registration error of maps against the truth of the synthetic camera.
+
+    Parameters
+    ----------
+    maps : Dataset
+        From :func:`registration_maps`.
+    u_ref, v_ref : (view, y, x) DataArray, pixels
+        Truth (``<campaign>-truth/<item>.zarr``): for every pixel of each view's
+        grid (any contiguous sensor range, usually the full sensor), the sensor
+        column and row in the reference view of the surface point it sees; NaN
+        where the reference view does not see it.
+
+    Returns
+    -------
+    (view, y, x) DataArray of float64, pixels
+        Distance in the reference image between each reference pixel and the
+        truth position of the point the maps send it to (truth interpolated
+        bilinearly at the map position); NaN where the map or the truth is NaN.
+    """
+    u = warp(u_ref.astype(np.float64), maps)
+    v = warp(v_ref.astype(np.float64), maps)
+    error = np.hypot(u - maps["x"], v - maps["y"])
+    return error.rename("registration_error").assign_attrs(units="pixel", long_name="registration error vs truth")

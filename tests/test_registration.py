@@ -1,0 +1,331 @@
+"""Co-registration (surffin.registration) against rendered scenes with known geometry."""
+
+import json
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import pytest
+import xarray as xr
+from scipy import ndimage
+
+from surffin.campaign import Roi, read_campaign
+from surffin.errors import RegistrationError
+from surffin.ingest import build_cube, ingest_item
+from surffin.registration import register, registration_error, registration_maps, warp
+from surffin.simulate import simulate_campaign
+from surffin.simulate.camera import PinholeCamera, look_at_pose, to_camera
+from surffin.simulate.scene import Material, Scene, Texture, box_faces, keyed_rng, plane_face, render
+from surffin.simulate.truth import reference_coordinates
+from surffin.viewfile import View
+
+CAMERA = PinholeCamera(width=160, height=120, fx=565.0 / 4, fy=579.0 / 4)
+CROP = Roi((8, 112), (12, 148))
+DEPTH_NOISE = 0.0009
+TEXTURE = Material("speckle", 0.6, 1.0, R0_texture=(Texture(0.25, 0.004, 1.0),))
+
+
+def cube(values, y0=0, x0=0):
+    """A (view, y, x) DataArray (views v00, v01, ..) whose y/x coords are sensor indices from (y0, x0)."""
+    values = np.asarray(values)
+    views = [f"v{k:02d}" for k in range(values.shape[0])]
+    coords = {"view": views, "y": y0 + np.arange(values.shape[1]), "x": x0 + np.arange(values.shape[2])}
+    return xr.DataArray(values, dims=("view", "y", "x"), coords=coords)
+
+
+def maps_of(map_x, map_y, y, x, views):
+    """A maps Dataset on the grid (y, x) with the given sensor positions (view, y, x)."""
+    coords = {"view": views, "y": y, "x": x}
+    return xr.Dataset({"map_x": (("view", "y", "x"), map_x), "map_y": (("view", "y", "x"), map_y)}, coords=coords)
+
+
+class Rendered(NamedTuple):
+    """A rendered item: its ingest cube and, per view (view, y, x) on the crop, the truth."""
+
+    ingest: xr.Dataset
+    truth_x: np.ndarray  # sensor column in the view of each reference pixel's point, NaN if not seen
+    truth_y: np.ndarray
+    lands: np.ndarray  # bool: the point projects into the view's cropped grid (seen or hidden)
+
+
+def rendered_item(name, faces, poses, *, seed=0, crop=CROP):
+    """Render a scene into an ingest cube with poses and its registration truth.
+
+    The intensity is Lambertian, ``1000 R0 cos(aoi) / d^2`` with 1.5 % noise; depth noise
+    0.9 mm along the ray.
+    """
+    scene = Scene(faces, seed)
+    reference = render(scene, CAMERA, poses[0])
+    world = reference.world_points()[crop.slices]
+    views, truth, lands = [], [], []
+    for index, pose in enumerate(poses):
+        geometry = render(scene, CAMERA, pose)
+        rng = keyed_rng(seed, "test", name, index)
+        hit = geometry.face >= 0
+        distance = geometry.distance + rng.normal(0.0, DEPTH_NOISE, hit.shape)
+        xyz = np.where(hit[..., None], geometry.rays * distance[..., None], np.nan)
+        signal = 1000.0 * geometry.R0 * np.cos(geometry.aoi) / geometry.distance**2
+        intensity = np.where(hit, signal * (1.0 + 0.015 * rng.standard_normal(hit.shape)), 0.0)
+        views.append(View(Path(f"v{index:02d}.npz"), xyz, intensity.astype(np.float32), hit, pose))
+        truth.append([array[crop.slices] for array in reference_coordinates(scene, CAMERA, pose, reference)])
+        u, v = CAMERA.project(to_camera(world, pose))
+        lands.append((u >= crop.x[0]) & (u <= crop.x[1] - 1) & (v >= crop.y[0]) & (v <= crop.y[1] - 1))
+    ingest = build_cube(views, crop)
+    ingest.attrs = {
+        "item": name,
+        "reference_view": "v00",
+        "camera": {"width": CAMERA.width, "height": CAMERA.height, "intrinsics": CAMERA.intrinsics()},
+    }
+    return Rendered(ingest, *(np.stack(arrays) for arrays in zip(*truth)), np.stack(lands))
+
+
+def map_error(maps, truth_x, truth_y):
+    """Distance (pixels, in each view) between mapped and true positions; NaN where either is NaN."""
+    return np.hypot(maps["map_x"].values - truth_x, maps["map_y"].values - truth_y)
+
+
+@pytest.fixture(scope="module")
+def planar():
+    """A textured wall seen from three poses (no occlusion: a homography is exact)."""
+    design = ((0, 0, 0), (15, 1, 0.05), (30, 3, -0.03))  # tilt (deg), azimuth, roll (rad)
+    poses = [look_at_pose((0.0, 0.0, 0.0), 0.4, np.deg2rad(t), a, r) for t, a, r in design]
+    return rendered_item("wall", [plane_face("wall", TEXTURE)], poses)
+
+
+@pytest.fixture(scope="module")
+def stepped():
+    """A 3 cm high textured block on a textured board, seen from above and from two sides at 30 deg."""
+    faces = [plane_face("board", TEXTURE), *box_faces("block", (0.0, 0.0), 0.12, 0.03, 0.3, TEXTURE, 0)]
+    target = (0.0, 0.0, -0.03)
+    poses = [look_at_pose(target, 0.4, np.deg2rad(t), a) for t, a in ((0, 0), (30, 0.5), (30, 2.6))]
+    return rendered_item("block", faces, poses)
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """The tiny synthetic campaign (with poses) and its truth folder."""
+    root = tmp_path_factory.mktemp("tiny")
+    simulate_campaign(root / "raw", preset="tiny", seed=3)
+    return read_campaign(root / "raw", require_calibration=False), root / "raw-truth"
+
+
+# maps ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("method", ["poses", "homography"])
+def test_reference_view_maps_to_itself(planar, method):
+    ingest = planar.ingest
+    maps = registration_maps(ingest, method=method)
+    cols, rows = np.meshgrid(ingest["x"].values, ingest["y"].values)
+    np.testing.assert_array_equal(maps["map_x"].sel(view="v00"), cols)
+    np.testing.assert_array_equal(maps["map_y"].sel(view="v00"), rows)
+    assert maps.attrs["method"] == method and maps.attrs["reference_view"] == "v00"
+    json.dumps(maps.attrs)  # storable as zarr attributes
+
+
+@pytest.mark.parametrize("method", ["poses", "homography"])
+def test_maps_to_and_from_another_reference_round_trip(planar, method):
+    forward = registration_maps(planar.ingest, method=method).sel(view=["v01"])
+    backward = registration_maps(planar.ingest, method=method, reference="v01")
+    assert backward.attrs["reference_view"] == "v01"
+    # backward's map of v00 lives on v01's grid: sample it where forward sends each v00 pixel
+    back = {axis: backward[f"map_{axis}"].sel(view=["v00"]).assign_coords(view=["v01"]) for axis in "xy"}
+    col, row = warp(back["x"], forward), warp(back["y"], forward)
+    error = np.hypot(col - forward["x"], row - forward["y"]).values
+    assert np.isfinite(error).mean() > 0.5
+    assert np.nanmedian(error) < 0.2
+
+
+@pytest.mark.parametrize("item", ["S2", "T1"])
+def test_poses_agree_with_the_simulator_truth(tiny, item):
+    campaign, truth_dir = tiny
+    ingest = ingest_item(campaign, item)
+    maps = registration_maps(ingest)
+    assert maps.attrs["method"] == "poses"
+    truth = xr.open_zarr(truth_dir / f"{item}.zarr")
+    error = registration_error(maps, truth["u_ref"], truth["v_ref"])
+    assert float(error.sel(view="v00").max()) < 1e-9
+    medians = error.median(("y", "x")).values
+    assert np.all(medians < 0.5), medians
+    # the truth inverted independently: u_ref/v_ref of the view, interpolated by scipy at the map
+    for view in maps["view"].values[1:]:
+        at = [maps["map_y"].sel(view=view).values, maps["map_x"].sel(view=view).values]
+        u = ndimage.map_coordinates(truth["u_ref"].sel(view=view).values, at, order=1, cval=np.nan)
+        v = ndimage.map_coordinates(truth["v_ref"].sel(view=view).values, at, order=1, cval=np.nan)
+        cols, rows = np.meshgrid(maps["x"].values, maps["y"].values)
+        independent = np.hypot(u - cols, v - rows)
+        both = np.isfinite(independent) & np.isfinite(error.sel(view=view).values)
+        assert both.mean() > 0.5
+        np.testing.assert_allclose(error.sel(view=view).values[both], independent[both], atol=1e-3)
+
+
+def test_homography_registers_a_plane(planar):
+    maps = registration_maps(planar.ingest.drop_vars("pose"))
+    assert maps.attrs["method"] == "homography"
+    error = map_error(maps, planar.truth_x, planar.truth_y)
+    for index in (1, 2):
+        assert np.nanmedian(error[index]) < 1.0
+        diagnostics = maps.attrs["diagnostics"][f"v{index:02d}"]
+        assert diagnostics["inliers"] >= 12 and diagnostics["rms"] < 2.0
+    assert np.isfinite(error[1:]).mean() > 0.5
+
+
+def test_poses_hide_occluded_points(stepped):
+    maps = registration_maps(stepped.ingest, method="poses")
+    for index in (1, 2):
+        mapped = np.isfinite(maps["map_x"].values[index])
+        seen = stepped.lands[index] & np.isfinite(stepped.truth_x[index])
+        hidden = stepped.lands[index] & np.isnan(stepped.truth_x[index])
+        assert hidden.sum() > 100, "the block must hide a strip of the board"
+        assert 1.0 - mapped[hidden].mean() > 0.9
+        assert mapped[seen].mean() > 0.97
+        map_x, map_y = maps["map_x"].values[index][mapped], maps["map_y"].values[index][mapped]
+        assert map_x.min() >= CROP.x[0] and map_x.max() <= CROP.x[1] - 1
+        assert map_y.min() >= CROP.y[0] and map_y.max() <= CROP.y[1] - 1
+
+
+def test_stepped_surface_needs_poses(stepped):
+    ingest = stepped.ingest
+    by_poses = map_error(registration_maps(ingest, method="poses"), stepped.truth_x, stepped.truth_y)
+    by_homography = map_error(registration_maps(ingest, method="homography"), stepped.truth_x, stepped.truth_y)
+    top = block_top(ingest)
+    rows, cols = ingest["y"].values[top.any(axis=1)], ingest["x"].values[top.any(axis=0)]
+    roi = {"y": [int(rows[0]) + 3, int(rows[-1]) - 2], "x": [int(cols[0]) + 3, int(cols[-1]) - 2]}
+    top_maps = registration_maps(ingest, method="homography", roi=roi, min_matches=8, min_inliers=6)
+    by_top_homography = map_error(top_maps, stepped.truth_x, stepped.truth_y)
+    for index in (1, 2):
+        assert np.nanmedian(by_poses[index]) < 0.5
+        assert np.nanpercentile(by_poses[index][top], 95) < 1.0
+        # one homography fits one plane (the board, most keypoints): the block's top is off by the parallax
+        assert np.nanmedian(by_homography[index][top]) > 3.0
+        # keypoints on the top only (roi): the top registers, the board is off
+        assert np.nanmedian(by_top_homography[index][top]) < 1.0
+        assert np.nanmedian(by_top_homography[index][~top]) > 3.0
+
+
+def block_top(ingest):
+    """Reference pixels on the block's top: 0.40 m from the reference camera, the board 0.43 m."""
+    return ingest["xyz"].sel(view="v00", axis="z").values < 0.415
+
+
+def test_poses_options_and_errors(planar):
+    ingest = planar.ingest
+    with pytest.raises(TypeError, match="unknown options"):
+        registration_maps(ingest, method="poses", detector="sift")
+    with pytest.raises(ValueError, match="smooth"):
+        registration_maps(ingest, method="poses", smooth=4)
+    with pytest.raises(RegistrationError, match="'wall'.*no view carries a pose"):
+        registration_maps(ingest.drop_vars("pose"), method="poses")
+    with pytest.raises(RegistrationError, match="reference view 'v09'"):
+        registration_maps(ingest, reference="v09")
+    bent = ingest.copy(deep=True)
+    bent["pose"][1, 0, 0] = 2.0
+    with pytest.raises(RegistrationError, match="item 'wall', view 'v01'.*rigid"):
+        registration_maps(bent, method="poses")
+
+
+def test_textureless_pair_raises_naming_item_and_view():
+    height, width = 60, 80
+    rows, cols = np.mgrid[0:height, 0:width]
+    xyz = np.stack([(cols - 40) * 0.004, (rows - 30) * 0.004, np.full(rows.shape, 0.5)], axis=-1)
+    flat = np.full((height, width), 700.0, np.float32)
+    views = [View(Path(f"{stem}.npz"), xyz, flat, np.ones((height, width), bool), None) for stem in ("a", "b")]
+    ingest = build_cube(views, Roi((0, height), (0, width))).assign_attrs(item="flat", camera={"intrinsics": None})
+    with pytest.raises(RegistrationError, match=r"item 'flat', view 'b'.*matches"):
+        registration_maps(ingest)
+
+
+# warp ------------------------------------------------------------------------------------------
+
+
+def ramp(col, row, view):
+    return 3.0 + 0.5 * col - 0.25 * row + 10.0 * view
+
+
+def test_warp_is_exact_on_a_linear_ramp_in_sensor_coordinates():
+    rng = np.random.default_rng(1)
+    y0, x0, h, w = 37, 53, 20, 30
+    rows, cols = np.mgrid[y0 : y0 + h, x0 : x0 + w]
+    data = cube(np.stack([ramp(cols, rows, v) for v in range(3)]), y0, x0)
+    map_x = rng.uniform(x0, x0 + w - 1, (3, 8, 9))
+    map_y = rng.uniform(y0, y0 + h - 1, (3, 8, 9))
+    map_x[:, 0, 0], map_y[:, 0, 0] = x0 + w - 1, y0 + h - 1  # the last pixel itself: no neighbour beyond
+    map_x[:, 0, 1], map_y[:, 0, 1] = x0, y0
+    maps = maps_of(map_x, map_y, np.arange(8), np.arange(9), list(data["view"].values))
+    out = warp(data, maps)
+    expected = ramp(map_x, map_y, np.arange(3)[:, None, None])
+    np.testing.assert_allclose(out.values, expected, rtol=0, atol=1e-12)
+    assert out.dims == ("view", "y", "x") and list(out["y"].values) == list(range(8))
+
+
+def test_warp_matches_scipy_bilinear():
+    rng = np.random.default_rng(2)
+    image = rng.normal(size=(2, 15, 17))
+    data = cube(image, 100, 200)
+    map_x = rng.uniform(200, 216, (2, 6, 7))
+    map_y = rng.uniform(100, 114, (2, 6, 7))
+    out = warp(data, maps_of(map_x, map_y, np.arange(6), np.arange(7), ["v00", "v01"]))
+    for v in range(2):
+        reference = ndimage.map_coordinates(image[v], [map_y[v] - 100, map_x[v] - 200], order=1)
+        np.testing.assert_allclose(out.values[v], reference, atol=1e-12)
+
+
+def test_warp_nan_never_bleeds_and_nothing_is_extrapolated():
+    image = np.ones((1, 6, 7))
+    image[0, 2, 3] = np.nan
+    data = cube(image, 10, 20)
+    points = {  # (col, row) sensor -> NaN expected?
+        (23.0, 12.0): True,  # the NaN pixel itself
+        (23.5, 12.0): True,  # between it and its right neighbour
+        (22.5, 11.5): True,  # it is one of the 4 neighbours
+        (24.0, 12.0): False,  # its neighbour exactly: weight 0 on the NaN
+        (23.0, 13.0): False,
+        (24.5, 12.5): False,
+        (26.0, 15.0): False,  # last column and row exactly
+        (26.01, 13.0): True,  # beyond the grid
+        (19.99, 13.0): True,
+        (21.0, 9.9): True,
+        (np.nan, 12.0): True,  # no map
+    }
+    positions = np.array(list(points), dtype=float)
+    map_x = positions[:, 0].reshape(1, 1, -1)
+    map_y = positions[:, 1].reshape(1, 1, -1)
+    maps = maps_of(map_x, map_y, [0], np.arange(len(points)), ["v00"])
+    out = warp(data, maps).values[0, 0]
+    np.testing.assert_array_equal(np.isnan(out), list(points.values()))
+    np.testing.assert_array_equal(out[~np.isnan(out)], 1.0)
+    # an invalid pixel acts as NaN
+    valid = cube(np.isfinite(image), 10, 20)
+    masked = warp(cube(np.nan_to_num(image, nan=1e6), 10, 20), maps, valid=valid).values[0, 0]
+    np.testing.assert_array_equal(np.isnan(masked), list(points.values()))
+
+
+def test_warp_is_lazy_on_dask_and_agrees_with_numpy():
+    rng = np.random.default_rng(3)
+    data = cube(rng.normal(size=(3, 25, 31)).astype(np.float32), 5, 6)
+    positions = rng.uniform(4, 38, (3, 13, 11)), rng.uniform(3, 31, (3, 13, 11))
+    maps = maps_of(*positions, np.arange(13), np.arange(11), list(data["view"].values))
+    eager = warp(data, maps)
+    lazy = warp(data.chunk({"view": 1, "y": 7, "x": 9}), maps.chunk({"y": 5}))
+    assert lazy.chunks is not None and lazy.dtype == np.float32
+    xr.testing.assert_allclose(lazy.compute(), eager)
+
+
+def test_register_warps_reflectance_and_aoi(planar):
+    ingest = planar.ingest
+    maps = registration_maps(ingest)
+    ds = xr.Dataset(
+        {
+            "reflectance": ingest["intensity"].where(ingest["valid"]).assign_attrs(units="1", long_name="reflectance"),
+            "aoi": xr.full_like(ingest["intensity"], 0.3).assign_attrs(units="rad", long_name="angle of incidence"),
+        },
+        attrs={"item": "wall"},
+    )
+    out = register(ds, maps)
+    assert out["reflectance"].attrs == {"units": "1", "long_name": "reflectance"}
+    assert out["aoi"].attrs["units"] == "rad"
+    assert set(out) == {"reflectance", "aoi", "valid", "map_x", "map_y"}
+    assert out.attrs["method"] == "poses" and out.attrs["item"] == "wall"
+    xr.testing.assert_equal(out["reflectance"].sel(view="v00"), ds["reflectance"].sel(view="v00"))
+    np.testing.assert_array_equal(out["valid"], np.isfinite(out["reflectance"]) & np.isfinite(out["aoi"]))
+    assert 0.5 < float(out["valid"].sel(view="v02").mean()) < 1.0
