@@ -20,6 +20,7 @@ _LAZY = {
     "read_campaign": "surffin.campaign",
     "simulate_campaign": "surffin.simulate",
     "fit_scattering": "surffin.scattering",
+    "angle_of_incidence": "surffin.geometry",
 }
 
 __all__ = [

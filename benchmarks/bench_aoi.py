@@ -1,0 +1,130 @@
+"""Speed and accuracy of the AOI kernel (surffin.geometry) on synthetic 480x640 frames.
+
+Run by hand: ``python benchmarks/bench_aoi.py [--repeat N] [--subset N]``.
+
+Table 1, one row per window, on a scene: the kernel's median time per frame, its
+best (the machine is shared: the gap shows the load) and the median rate; a
+scipy cKDTree PCA (k = window**2 nearest points, tree build + queries on a
+subset of pixels, extrapolated per pixel) in the same process, and the ratio;
+the AOI error against the truth (median and 95th percentile of |aoi - truth|
+over the pixels with a normal) and the share of valid pixels without one. The
+scene: a wall 0.8 m away tilted by 25 deg, with a 2 cm proud rectangular
+specimen (parallel to the wall, so the true normal is the same everywhere) over
+the central third of the image.
+
+Table 2, the median AOI error of a plain wall per window, distance and tilt: what
+the default window is chosen on (METHOD.md: calibration views at 0.3-1.0 m,
+tilts 0-30 deg; the paper's AOI noise 0.27-1.7 deg).
+
+The camera: pinhole, fx 565, fy 579, principal point at the centre; 0.9 mm
+Gaussian depth noise along each ray.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+import timeit
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from surffin.geometry import _angle_of_incidence
+
+HEIGHT, WIDTH = 480, 640
+FX, FY = 565.0, 579.0
+NOISE = 0.9e-3
+WINDOWS = (7, 15, 21, 31, 61)
+ERROR_WINDOWS = (7, 11, 15, 21, 31)
+DISTANCES = (0.3, 0.5, 0.8, 1.0)
+TILTS = (0.0, 30.0, 60.0)
+
+
+def scene(distance: float = 0.8, tilt: float = 25.0, specimen: bool = True, seed: int = 0):
+    """Noisy frame xyz (H, W, 3) float32, metres, and the true AOI (H, W), radians.
+
+    A wall ``distance`` metres away along the optical axis, turned by ``tilt`` degrees
+    about the y axis, with a 2 cm proud specimen over the central third if ``specimen``.
+    """
+    rows, cols = np.mgrid[0:HEIGHT, 0:WIDTH].astype(float)
+    rays = np.stack([(cols - (WIDTH - 1) / 2) / FX, (rows - (HEIGHT - 1) / 2) / FY, np.ones_like(rows)], axis=-1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    normal = np.array([np.sin(np.deg2rad(tilt)), 0.0, -np.cos(np.deg2rad(tilt))])
+    offset = np.full((HEIGHT, WIDTH), distance * np.cos(np.deg2rad(tilt)))
+    if specimen:
+        offset[HEIGHT // 3 : 2 * HEIGHT // 3, WIDTH // 3 : 2 * WIDTH // 3] -= 0.02
+    cosine = rays @ normal
+    depth = -offset / cosine + np.random.default_rng(seed).normal(0.0, NOISE, (HEIGHT, WIDTH))
+    return (rays * depth[..., None]).astype(np.float32), np.arccos(np.abs(cosine))
+
+
+def error_degrees(xyz: np.ndarray, truth: np.ndarray, window: int) -> tuple[np.ndarray, float]:
+    """|aoi - truth| (degrees) where the kernel gives an AOI, and the share of pixels without one."""
+    aoi, _ = _angle_of_incidence(xyz, window)
+    has = np.isfinite(aoi)
+    return np.rad2deg(np.abs(aoi - truth)[has]), 1.0 - has.mean()
+
+
+def kdtree_seconds_per_frame(xyz: np.ndarray, k: int, subset: int, repeat: int) -> float:
+    """cKDTree PCA normals: tree build + k-NN query + batched eigh, extrapolated to a frame."""
+    points = xyz.reshape(-1, 3).astype(np.float64)
+    chosen = np.random.default_rng(1).choice(len(points), subset, replace=False)
+
+    def normals():
+        tree = cKDTree(points)
+        built = time.perf_counter()
+        _, neighbours = tree.query(points[chosen], k=k, workers=-1)
+        near = points[neighbours]
+        near -= near.mean(axis=1, keepdims=True)
+        np.linalg.eigh(np.einsum("nki,nkj->nij", near, near))
+        return built
+
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        built = normals()
+        end = time.perf_counter()
+        times.append((built - start) + (end - built) * len(points) / subset)
+    return float(np.median(times))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeat", type=int, default=15, help="timed runs per window (median reported)")
+    parser.add_argument("--subset", type=int, default=2000, help="pixels queried by the cKDTree reference")
+    args = parser.parse_args()
+    xyz, truth = scene()
+    pixels = HEIGHT * WIDTH
+    print(f"frame {HEIGHT}x{WIDTH}, noise {NOISE * 1e3:.1f} mm along the ray, median of {args.repeat} runs")
+    header = ("window", "ms/frame", "best ms", "Mpx/s", "kdtree Mpx/s", "speed-up")
+    header += ("median err deg", "p95 err deg", "no AOI %")
+    print(" | ".join(header))
+    for window in WINDOWS:
+        runs = timeit.repeat(lambda: _angle_of_incidence(xyz, window), number=1, repeat=args.repeat)
+        seconds = float(np.median(runs))
+        reference = kdtree_seconds_per_frame(xyz, window * window, args.subset, max(3, args.repeat // 5))
+        error, lost = error_degrees(xyz, truth, window)
+        row = (
+            f"{window:6d}",
+            f"{seconds * 1e3:8.1f}",
+            f"{min(runs) * 1e3:7.1f}",
+            f"{pixels / seconds / 1e6:5.1f}",
+            f"{pixels / reference / 1e6:12.3f}",
+            f"{reference / seconds:8.0f}",
+            f"{np.median(error):14.3f}",
+            f"{np.percentile(error, 95):11.3f}",
+            f"{100 * lost:8.2f}",
+        )
+        print(" | ".join(row))
+    print()
+    print("median AOI error, deg, of a plain wall (tilt deg / distance m)")
+    columns = [(tilt, distance) for tilt in TILTS for distance in DISTANCES]
+    print(" | ".join(["window", *(f"{tilt:2.0f}/{distance:.1f}" for tilt, distance in columns)]))
+    for window in ERROR_WINDOWS:
+        frames = (scene(distance, tilt, specimen=False) for tilt, distance in columns)
+        medians = [np.median(error_degrees(xyz, truth, window)[0]) for xyz, truth in frames]
+        print(" | ".join([f"{window:6d}", *(f"{median:6.2f}" for median in medians)]))
+
+
+if __name__ == "__main__":
+    main()

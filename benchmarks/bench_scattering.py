@@ -1,0 +1,100 @@
+"""Scattering fit speed: surffin's kernel against what users have today.
+
+Run by hand: ``python benchmarks/bench_scattering.py [--pixels 153600] [--repeat 5]``.
+Prints pixel fits per second (median of repeats) for surffin (one thread, and
+through dask with 2 threads), a scipy ``curve_fit`` loop and
+``xarray.DataArray.curvefit`` on the same data, with ratios against surffin.
+The references run on a sample of pixels and are extrapolated per pixel.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+import warnings
+
+import dask
+import numpy as np
+import xarray as xr
+from scipy.optimize import curve_fit
+
+from surffin.scattering import _fit_scattering, fit_scattering, scattering_model
+
+
+def data(npix, nview=5, seed=0):
+    """Pixels with 5 views over 0-40 deg AOI, plaster-like truth and 2 % noise."""
+    rng = np.random.default_rng(seed)
+    theta = np.abs(np.deg2rad(np.linspace(0, 40, nview)) + rng.normal(0, np.deg2rad(2), (npix, nview)))
+    r0 = rng.uniform(0.75, 0.95, npix)[:, None]
+    n = rng.uniform(0.9, 1.3, npix)[:, None]
+    return scattering_model(theta, r0, n) + rng.normal(0, 0.02, (npix, nview)), theta
+
+
+def median_time(func, repeat):
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        func()
+        times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
+def model(theta, r0, n):
+    return r0 * np.cos((2 - 1 / n) * theta) ** n
+
+
+def scipy_loop(r, theta):
+    for ri, ti in zip(r, theta):
+        try:
+            curve_fit(model, ti, ri, p0=(ri.max(), 1.0))
+        except RuntimeError:
+            pass
+
+
+def as_cube(a, side):
+    npix, nview = a.shape
+    return xr.DataArray(a.T.reshape(nview, side, npix // side), dims=("view", "y", "x"))
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pixels", type=int, default=320 * 480)
+    parser.add_argument("--sample", type=int, default=2000, help="pixels fitted by the slow references")
+    parser.add_argument("--repeat", type=int, default=5)
+    args = parser.parse_args()
+    r, theta = data(args.pixels)
+    rows = []
+
+    t = median_time(lambda: _fit_scattering(r, theta), args.repeat)
+    rows.append(("surffin kernel, 1 thread", args.pixels, t))
+    side = 320
+    rc = as_cube(r, side).chunk({"view": -1, "y": 80, "x": -1})
+    tc = as_cube(theta, side).chunk({"view": -1, "y": 80, "x": -1})
+    with dask.config.set(scheduler="threads", num_workers=2):
+        t = median_time(lambda: fit_scattering(rc, tc).compute(), args.repeat)
+    rows.append(("surffin fit_scattering, dask 2 threads", args.pixels, t))
+
+    rs, ts = r[: args.sample], theta[: args.sample]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        t = median_time(lambda: scipy_loop(rs, ts), max(1, args.repeat // 2))
+        rows.append(("scipy curve_fit loop", args.sample, t))
+        side = 40
+        rcube = as_cube(rs[: side * (args.sample // side)], side).chunk({"view": -1, "y": 10})
+        tcube = as_cube(ts[: side * (args.sample // side)], side).chunk({"view": -1, "y": 10})
+        with dask.config.set(scheduler="threads", num_workers=2):
+            t = median_time(
+                lambda: rcube.curvefit(tcube, model, reduce_dims="view", p0={"r0": 0.8, "n": 1.0}).compute(),
+                max(1, args.repeat // 2),
+            )
+        rows.append(("xarray curvefit, dask 2 threads", rcube.size // rcube.sizes["view"], t))
+
+    reference = rows[0][1] / rows[0][2]
+    print(f"{'method':42s} {'pixels':>8s} {'median s':>9s} {'fits/s':>12s} {'surffin 1-thread / this':>24s}")
+    for name, npix, seconds in rows:
+        rate = npix / seconds
+        print(f"{name:42s} {npix:8d} {seconds:9.3f} {rate:12,.0f} {reference / rate:24.1f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,506 @@
+"""AOI and plane normals from organized clouds (surffin.geometry) against independent references."""
+
+import warnings
+
+import dask
+import numpy as np
+import pytest
+import xarray as xr
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from surffin.geometry import (
+    _MIN_GAP,
+    DEFAULT_JUMP,
+    DEFAULT_WINDOW,
+    _angle_of_incidence,
+    _plane_normals,
+    _smallest_eigenvector,
+    angle_of_incidence,
+)
+
+FOCAL = 565.0
+
+
+def rays(height, width, focal=FOCAL):
+    """Unit rays (H, W, 3) of a pinhole camera with its principal point at the image centre."""
+    rows, cols = np.mgrid[0:height, 0:width].astype(float)
+    ray = np.stack([(cols - (width - 1) / 2) / focal, (rows - (height - 1) / 2) / focal, np.ones_like(rows)], axis=-1)
+    return ray / np.linalg.norm(ray, axis=-1, keepdims=True)
+
+
+def plane(normal, offset, height=40, width=50, noise=0.0, seed=0, focal=FOCAL):
+    """Points (H, W, 3) of the plane n . P = -offset seen by the camera, the unit normal and the true AOI.
+
+    ``offset`` may be an (H, W) array (parallel planes); noise is Gaussian, metres, along the ray.
+    """
+    normal = np.asarray(normal, float) / np.linalg.norm(normal)
+    ray = rays(height, width, focal)
+    cosine = ray @ normal
+    depth = -np.asarray(offset) / cosine
+    if noise:
+        depth = depth + np.random.default_rng(seed).normal(0.0, noise, (height, width))
+    return ray * depth[..., None], normal, np.arccos(np.abs(cosine))
+
+
+def pca_fit(points):
+    """Brute-force plane fit of points (k, 3): mean squared residual and unit normal (SVD)."""
+    centred = points - points.mean(axis=0)
+    _, singular, rows = np.linalg.svd(centred)
+    return singular[-1] ** 2 / len(points), rows[-1]
+
+
+def reference_normal(xyz, row, col, window):
+    """The kernel's rule for one pixel by brute force, for clouds without depth jumps.
+
+    Candidates: the windows centred on the pixel and half a window away (8 directions),
+    centres inside the image, with at least half the window's pixels valid.
+    The first in this order whose mean squared residual is at most twice the smallest.
+    Returns the normal and the candidate's number (0: centred), or None if no candidate
+    is usable.
+    """
+    half = window // 2
+    height, width = xyz.shape[:2]
+    min_count = int(np.ceil(0.5 * window**2))
+    fits = []
+    for sy, sx in ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (-1, 1), (1, -1), (1, 1)):
+        cy, cx = row + sy * half, col + sx * half
+        block = xyz[max(cy - half, 0) : cy + half + 1, max(cx - half, 0) : cx + half + 1].reshape(-1, 3)
+        block = block[np.isfinite(block).all(axis=1)]
+        inside = 0 <= cy < height and 0 <= cx < width
+        fits.append(pca_fit(block) if inside and len(block) >= min_count else None)
+    usable = [fit for fit in fits if fit is not None]
+    if not usable:
+        return None
+    smallest = min(fit[0] for fit in usable)
+    number = next(k for k, fit in enumerate(fits) if fit is not None and fit[0] <= 2 * smallest)
+    return fits[number][1], number
+
+
+def angle_between(a, b):
+    """Angle (radians) between unit vectors regardless of sign, stable near 0."""
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.abs(np.sum(a * b, axis=-1)))
+
+
+def upper(matrices):
+    """The six upper-triangle entries (a00, a01, a02, a11, a12, a22) of (n, 3, 3) matrices."""
+    return [matrices[:, i, j] for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))]
+
+
+def random_rotation(rng):
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q * np.sign(np.diag(r))
+
+
+# (1) analytic planes ---------------------------------------------------------------------------
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    polar=st.floats(0.0, np.deg2rad(60.0)),
+    azimuth=st.floats(0.0, 2 * np.pi),
+    offset=st.floats(0.3, 3.0),
+    window=st.sampled_from([3, 5, 9, 15]),
+)
+def test_analytic_plane_matches_closed_form(polar, azimuth, offset, window):
+    normal = [np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), -np.cos(polar)]
+    xyz, unit, truth = plane(normal, offset)
+    aoi, distance = _angle_of_incidence(xyz, window)
+    assert np.isfinite(aoi).all()
+    np.testing.assert_allclose(aoi, truth, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(distance, np.linalg.norm(xyz, axis=-1), rtol=1e-15)
+    normals = _plane_normals(xyz, window)
+    np.testing.assert_allclose(normals, np.broadcast_to(unit, normals.shape), rtol=0, atol=1e-6)
+    assert (np.sum(normals * xyz, axis=-1) < 0).all()
+
+
+# (2) closed-form eigenvector ---------------------------------------------------------------------
+
+
+def spectra():
+    rng = np.random.default_rng(7)
+    yield rng.random((500, 3)) * np.array([1.0, 1.0, 0.1])  # generic
+    yield np.tile([1.0, 1.0, 0.0], (50, 1))  # noiseless plane, isotropic in the plane (r = -1)
+    yield np.tile([1.0, 1.0, 1e-6], (50, 1))  # noisy plane, isotropic in the plane
+    yield np.tile([1.0, 1e-3, 1e-9], (50, 1))  # grazing plane
+    yield np.tile([1e6, 1.0, 1e-6], (50, 1))  # wide dynamic range
+    yield np.tile([1.0, 0.5, 0.5 - 1e-4], (50, 1))  # near-degenerate smallest pair
+    yield np.tile([1.0, 1e-4, 0.0], (50, 1))  # nearly collinear points
+
+
+@pytest.mark.parametrize("values", list(spectra()), ids=lambda v: f"{v[0, 0]:g},{v[0, 1]:g},{v[0, 2]:g}")
+def test_smallest_eigenvector_matches_eigh(values):
+    rng = np.random.default_rng(len(values))
+    rotations = np.stack([random_rotation(rng) for _ in values])
+    matrices = np.einsum("nij,nj,nkj->nik", rotations, values, rotations)
+    vector, smallest, gap = _smallest_eigenvector(*upper(matrices))
+    reference_values, reference_vectors = np.linalg.eigh(matrices)
+    error = angle_between(vector.T, reference_vectors[:, :, 0])
+    spread = reference_values[:, 2] - reference_values[:, 0]
+    relative_gap = (reference_values[:, 1] - reference_values[:, 0]) / spread
+    # perturbation bound: eps * |A| / gap, for both solvers
+    assert (error <= 2e-14 / relative_gap).all(), error.max()
+    assert (np.abs(smallest - reference_values[:, 0]) <= 1e-14 * reference_values[:, 2] / relative_gap).all()
+    np.testing.assert_allclose(np.linalg.norm(vector, axis=0), 1.0, rtol=1e-14)
+    # gap = (lambda_mid - lambda_min) / (2 sqrt(3) p) with p^2 = sum((lambda - mean)^2) / 6
+    p = np.sqrt(np.sum((reference_values - reference_values.mean(axis=1, keepdims=True)) ** 2, axis=1) / 6)
+    np.testing.assert_allclose(gap, (reference_values[:, 1] - reference_values[:, 0]) / (2 * np.sqrt(3) * p), atol=1e-7)
+
+
+def test_degenerate_matrices_are_flagged():
+    line = np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0])  # collinear points: lambda_min = lambda_mid = 0
+    close = np.diag([2.0, 1.0, 1.0 - 1e-9])  # beyond what a closed form (or eigh) resolves
+    matrices = np.stack([line, close, np.zeros((3, 3))])
+    vector, _, gap = _smallest_eigenvector(*upper(matrices))
+    assert (gap[:2] < _MIN_GAP).all()
+    assert np.isnan(vector[:, 2]).all()
+
+
+# (3) brute force on a noisy surface --------------------------------------------------------------
+
+
+def noisy_surface(height=48, width=56, seed=3):
+    rng = np.random.default_rng(seed)
+    ray = rays(height, width)
+    rows, cols = np.mgrid[0:height, 0:width]
+    depth = 0.6 + 4e-4 * cols + 2e-4 * rows + 3e-6 * (cols - 20.0) ** 2 + rng.normal(0, 0.9e-3, (height, width))
+    xyz = ray * depth[..., None]
+    xyz[rng.random((height, width)) < 0.1] = np.nan
+    return xyz
+
+
+@pytest.mark.parametrize("window", [3, 7, 15])
+def test_normals_equal_brute_force_pca(window):
+    xyz = noisy_surface()
+    normals = _plane_normals(xyz, window)
+    rng = np.random.default_rng(window)
+    # random pixels, and the corners and borders where the centred window is too empty
+    pixels = [*zip(rng.integers(0, 48, 60), rng.integers(0, 56, 60)), (0, 0), (47, 55), (0, 30), (20, 55)]
+    checked = shifted = 0
+    for row, col in pixels:
+        if not np.isfinite(xyz[row, col]).all():
+            assert np.isnan(normals[row, col]).all()
+            continue
+        reference = reference_normal(xyz, row, col, window)
+        if reference is None:
+            assert np.isnan(normals[row, col]).all()
+            continue
+        assert angle_between(normals[row, col], reference[0]) < 1e-8
+        assert normals[row, col] @ xyz[row, col] < 0
+        checked += 1
+        shifted += reference[1] > 0
+    assert checked >= 40 and shifted >= 3
+
+
+def test_far_plane_keeps_float64_precision():
+    # plane 5 m away beside one at 0.3 m in the same rows: sliding sums see both
+    xyz, _, truth = plane([0.1, -0.2, -1.0], 0.3, height=30, width=60)
+    far, _, far_truth = plane([0.1, -0.2, -1.0], 5.0, height=30, width=60)
+    xyz[:, 30:], truth[:, 30:] = far[:, 30:], far_truth[:, 30:]
+    aoi, _ = _angle_of_incidence(xyz, 3)
+    interior = np.isfinite(aoi)
+    assert interior.sum() > 0.9 * aoi.size
+    np.testing.assert_allclose(aoi[interior], truth[interior], rtol=0, atol=1e-7)
+
+
+# (4) depth discontinuities -----------------------------------------------------------------------
+
+
+def step_scene(noise=0.0, band=None, seed=0, height=60, width=80):
+    """Two parallel planes 2 cm apart, 0.5 m from the camera, tilted 20 deg; the step runs down column width/2.
+
+    ``band`` fills that column with "nan" (invalid pixels) or "mixed" (points halfway between the planes).
+    """
+    step = width // 2
+    offset = np.full((height, width), 0.5)
+    offset[:, step:] += 0.02
+    normal = [0.0, np.sin(np.deg2rad(20.0)), -np.cos(np.deg2rad(20.0))]
+    xyz, _, truth = plane(normal, offset, height, width, noise, seed)
+    if band == "nan":
+        xyz[:, step] = np.nan
+    elif band == "mixed":
+        near, _, _ = plane(normal, 0.5, height, width)
+        xyz[:, step] = 0.5 * (near[:, step] + xyz[:, step])
+    return xyz, truth
+
+
+@pytest.mark.parametrize("band,jump", [(None, DEFAULT_JUMP), ("nan", DEFAULT_JUMP), ("mixed", 0.03)])
+def test_step_is_not_bridged(band, jump):
+    # the mixed pixels sit ~2% in depth from either side: a jump of 3% misses both halves of
+    # the step and must catch it over the pair of pixels two apart
+    xyz, truth = step_scene(band=band)
+    aoi, _ = _angle_of_incidence(xyz, 15, jump=jump)
+    # only the pixels at the step lose their normal: both sides of a clean step, the band otherwise
+    lost = np.flatnonzero(np.isnan(aoi).any(axis=0))
+    assert list(lost) == ([39, 40] if band is None else [40])
+    # everywhere else, next to the step included, the noiseless planes are recovered exactly
+    assert np.nanmax(np.abs(aoi - truth)) < 1e-6
+
+
+def test_surface_narrower_than_the_window_gets_no_normal():
+    # a ridge 8 px wide, 2 cm proud: every 15 px window on it reaches the board
+    offset = np.full((40, 80), 0.5)
+    offset[:, 36:44] -= 0.02
+    normal = [0.0, np.sin(np.deg2rad(20.0)), -np.cos(np.deg2rad(20.0))]
+    xyz, _, truth = plane(normal, offset, 40, 80)
+    aoi, _ = _angle_of_incidence(xyz, 15)
+    assert np.isnan(aoi[:, 36:44]).all()
+    assert np.isfinite(aoi[:, :35]).all() and np.isfinite(aoi[:, 45:]).all()
+    assert np.nanmax(np.abs(aoi - truth)) < 1e-6
+    # without the jump test, the ridge gets the normals of windows bridging it to the board
+    bridged, _ = _angle_of_incidence(xyz, 15, jump=10.0)
+    assert np.isfinite(bridged[:, 36:44]).all()
+    assert np.max(np.abs(bridged - truth)[:, 36:44]) > np.deg2rad(10.0)
+
+
+def test_noisy_step_near_edge_as_good_as_interior():
+    errors = []
+    for seed in range(3):
+        xyz, truth = step_scene(noise=0.9e-3, seed=seed)
+        aoi, _ = _angle_of_incidence(xyz, 15)
+        errors.append(np.abs(aoi - truth))
+    error = np.stack(errors)
+    near = error[:, :, np.r_[33:39, 41:47]]  # within half a window of the step, off the edge columns
+    interior = error[:, :, np.r_[7:25, 55:73]]
+    assert np.isfinite(near).all()
+    # a bridge would tilt by > 40 deg; choosing among noisy windows would bias the median up
+    assert np.median(near) < 1.15 * np.median(interior)
+    assert np.percentile(near, 99) < 1.3 * np.percentile(interior, 99)
+
+
+def test_crease_without_depth_jump():
+    # two faces 40 deg apart meeting along column 40, as a specimen's top and a visible side:
+    # no depth jump, but a window across the crease mixes the faces
+    ray = rays(40, 80)
+    faces = [np.array(normal) / np.linalg.norm(normal) for normal in ([0.3, 0.0, -1.0], [-0.4, 0.0, -1.0])]
+    apex = ray[0, 40] * 0.5
+    depths = np.stack([(apex @ normal) / (ray @ normal) for normal in faces])
+    xyz = ray * depths.min(axis=0)[..., None]
+    seen = np.stack(faces)[depths.argmin(axis=0)]
+    truth = np.arccos(np.abs(np.sum(ray * seen, axis=-1)))
+    aoi, _ = _angle_of_incidence(xyz, 15)
+    assert np.isfinite(aoi).all()
+    # every pixel more than one column off the crease has a window on its own face
+    error = np.abs(aoi - truth)
+    off = np.abs(np.arange(80) - 39.5) > 1
+    assert error[:, off].max() < 1e-6
+    assert error[:, ~off].max() < np.deg2rad(20.0)
+
+
+def test_steep_continuous_surface_is_one_surface():
+    # a plane at 75 deg AOI: depth changes by ~0.7% per pixel, ~6% across a window; not an edge
+    tilt = np.deg2rad(75.0)
+    xyz, _, truth = plane([np.sin(tilt), 0.0, -np.cos(tilt)], 0.1, 30, 40)
+    aoi, _ = _angle_of_incidence(xyz, 9)
+    assert np.ptp(xyz[..., 2]) / xyz[..., 2].min() > 0.2
+    assert np.isfinite(aoi).all()
+    np.testing.assert_allclose(aoi, truth, rtol=0, atol=1e-6)
+
+
+# (5) invalid pixels and too few points -----------------------------------------------------------
+
+
+def test_invalid_pixels_are_excluded():
+    xyz, _, truth = plane([0.3, 0.1, -1.0], 0.8)
+    rng = np.random.default_rng(0)
+    invalid = rng.random(xyz.shape[:2]) < 0.15
+    garbage = rng.choice([np.nan, np.inf, -1.0, 0.0], size=invalid.sum())
+    xyz[invalid, 2] = garbage  # NaN, inf, z < 0, z == 0 are all invalid
+    xyz[invalid, :2] = 1e3  # would ruin any plane they entered
+    aoi, distance = _angle_of_incidence(xyz, 7)
+    assert np.isnan(aoi[invalid]).all() and np.isnan(distance[invalid]).all()
+    assert np.isfinite(aoi[~invalid]).all()
+    np.testing.assert_allclose(aoi[~invalid], truth[~invalid], rtol=0, atol=1e-6)
+
+
+def subset(keep):
+    """A 3x3 frame of a plane with only the pixels ``keep`` (list of (row, col)) valid, and the plane's normal."""
+    xyz, unit, _ = plane([0.3, 0.1, -1.0], 0.8, 3, 3)
+    mask = np.zeros((3, 3), bool)
+    mask[tuple(np.transpose(keep))] = True
+    return np.where(mask[..., None], xyz, np.nan), mask, unit
+
+
+@pytest.mark.parametrize("count", [4, 5])
+def test_window_needs_min_fraction_of_valid_points(count):
+    # window 3 on a 3x3 frame: every pixel's centred or shifted windows hold at most the whole
+    # frame; 5 = ceil(0.5 * 9) valid points are needed
+    keep = [(0, 0), (0, 2), (2, 1), (1, 1), (2, 2)][:count]
+    cloud, mask, unit = subset(keep)
+    normals = _plane_normals(cloud, 3)
+    assert np.isfinite(normals[mask]).all() == (count == 5)
+    assert np.isnan(normals[~mask]).all()
+
+
+@pytest.mark.parametrize(
+    "keep,defined",
+    [([(0, 0), (2, 1)], False), ([(0, 0), (1, 1), (2, 2)], False), ([(0, 0), (2, 1), (1, 2)], True)],
+    ids=["two", "collinear", "three"],
+)
+def test_three_points_define_a_plane_two_or_collinear_do_not(keep, defined):
+    cloud, mask, unit = subset(keep)
+    normals = _plane_normals(cloud, 3, min_fraction=0.0)
+    assert np.isfinite(normals[mask]).all() == defined
+    assert np.isnan(normals[~mask]).all()
+    if defined:
+        np.testing.assert_allclose(normals[mask], np.broadcast_to(unit, (3, 3)), atol=1e-9)
+
+
+def test_empty_frame_is_all_nan_without_warnings():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        aoi, distance = _angle_of_incidence(np.full((10, 12, 3), np.nan, np.float32), 5)
+    assert np.isnan(aoi).all() and np.isnan(distance).all()
+
+
+# (7) float32 input -------------------------------------------------------------------------------
+
+
+def naive_float32_aoi(xyz, window):
+    """What the kernel avoids: raw moments in float32 integral images, then eigh. Interior pixels only."""
+    height, width, _ = xyz.shape
+    x, y, z = np.moveaxis(xyz.astype(np.float32), -1, 0)
+    sums = []
+    for moment in (np.ones_like(x), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z):
+        table = np.zeros((height + 1, width + 1), np.float32)
+        table[1:, 1:] = moment.cumsum(0, dtype=np.float32).cumsum(1, dtype=np.float32)
+        corners = table[window:, window:] + table[:-window, :-window]
+        sums.append(corners - table[:-window, window:] - table[window:, :-window])
+    count, first, second = sums[0], sums[1:4], iter(sums[4:])
+    scatter = np.empty((*count.shape, 3, 3), np.float32)
+    for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):
+        scatter[..., i, j] = scatter[..., j, i] = next(second) - first[i] * first[j] / count
+    normal = np.linalg.eigh(scatter.astype(np.float64))[1][..., 0]
+    half = window // 2
+    inner = xyz[half : height - half, half : width - half]
+    return np.arccos(np.abs(np.sum(normal * inner, axis=-1)) / np.linalg.norm(inner, axis=-1))
+
+
+def test_float32_input_equals_float64_input():
+    # plane 1 m away with mm noise: raw second moments ~1 m^2, the plane's thickness ~1e-6 m^2
+    window = 7
+    xyz, _, truth = plane([0.2, 0.1, -1.0], 1.0, 120, 160, noise=1e-3)
+    single = xyz.astype(np.float32)
+    aoi32, _ = _angle_of_incidence(single, window)
+    aoi64, _ = _angle_of_incidence(single.astype(np.float64), window)
+    np.testing.assert_array_equal(aoi32, aoi64)
+    aoi, _ = _angle_of_incidence(xyz, window)
+    # what remains is the rounding of the coordinates to float32 (~3e-8 m), not of the sums:
+    # ~1e-6 rad, 1e-4 of the noise's effect (most at the border, where windows are smaller)
+    difference = np.abs(aoi32 - aoi)
+    assert np.median(difference) < 1.5e-6 and difference.max() < 2e-5
+    # the scene does tell: float32 moments add errors several times the noise's
+    error = np.median(np.abs(aoi - truth))
+    half = window // 2
+    naive_error = np.median(np.abs(naive_float32_aoi(xyz, window) - truth[half:-half, half:-half]))
+    assert naive_error > 3 * error
+
+
+# xarray layer, (6) dask ---------------------------------------------------------------------------
+
+
+def blocks_scene(height, width, seed=0):
+    """A tilted wall 0.6 m away with proud and sunken blocks, holes and 0.9 mm noise: edges everywhere."""
+    rng = np.random.default_rng(seed)
+    offset = np.full((height, width), 0.6)
+    for _ in range(12):
+        top, left = rng.integers(0, height), rng.integers(0, width)
+        offset[top : top + rng.integers(4, 40), left : left + rng.integers(4, 40)] += rng.choice([-0.05, -0.02, 0.03])
+    xyz, _, _ = plane([0.2, -0.1, -1.0], offset, height, width, noise=0.9e-3, seed=seed)
+    for _ in range(6):
+        top, left = rng.integers(0, height), rng.integers(0, width)
+        xyz[top : top + rng.integers(2, 12), left : left + rng.integers(2, 12)] = np.nan
+    return xyz
+
+
+def cube(views=2, height=100, width=120, dtype=np.float32):
+    """(view, y, x, axis) DataArray: noisy blocks (even views) and noisy curved surfaces with holes (odd)."""
+    frames = [
+        blocks_scene(height, width, seed=view) if view % 2 == 0 else noisy_surface(height, width, seed=view)
+        for view in range(views)
+    ]
+    coords = {"view": [f"v{i}" for i in range(views)], "y": np.arange(height) + 10, "x": np.arange(width)}
+    return xr.DataArray(
+        np.stack(frames).astype(dtype), dims=("view", "y", "x", "axis"), coords={**coords, "axis": ["x", "y", "z"]}
+    )
+
+
+def test_dataset_layout_and_attributes():
+    xyz = cube()
+    ds = angle_of_incidence(xyz, window=7, jump=0.03)
+    assert set(ds.data_vars) == {"aoi", "distance"}
+    for name in ("aoi", "distance"):
+        assert ds[name].dims == ("view", "y", "x") and ds[name].dtype == np.float32
+        assert ds[name].attrs["units"] in ("rad", "m") and ds[name].attrs["long_name"]
+    assert ds.aoi.attrs["units"] == "rad" and ds.distance.attrs["units"] == "m"
+    assert ds.attrs["window"] == 7 and ds.attrs["jump"] == 0.03
+    xr.testing.assert_equal(ds.y, xyz.y)
+    assert list(ds.view.values) == ["v0", "v1"]
+    expected, distance = _angle_of_incidence(xyz.values[1], 7, jump=0.03)
+    np.testing.assert_allclose(ds.aoi.values[1], expected, atol=2e-7, rtol=0)
+    np.testing.assert_allclose(ds.distance.values[1], distance, rtol=1e-7)
+    defaults = angle_of_incidence(xyz).attrs
+    assert (defaults["window"], defaults["jump"]) == (DEFAULT_WINDOW, DEFAULT_JUMP)
+
+
+def test_axis_coordinate_order_is_honoured():
+    xyz = cube(views=1)
+    shuffled = xyz.sel(axis=["z", "x", "y"])
+    xr.testing.assert_identical(angle_of_incidence(shuffled, window=7), angle_of_incidence(xyz, window=7))
+
+
+@pytest.mark.parametrize(
+    "chunks,window",
+    [
+        ({"view": 1, "y": 37, "x": 41}, 7),
+        ({"view": 2, "y": 37, "x": 41}, 15),
+        ({"view": 1, "y": 23, "x": 120}, 31),  # halo deeper than a chunk: chunks are merged
+        ({"view": 1, "y": 100, "x": 50}, 61),
+    ],
+)
+def test_dask_equals_numpy(chunks, window):
+    xyz = cube()
+    expected = angle_of_incidence(xyz, window=window)
+
+    def no_compute(*args, **kwargs):
+        raise AssertionError("angle_of_incidence computed dask input eagerly")
+
+    with dask.config.set(scheduler=no_compute):
+        lazy = angle_of_incidence(xyz.chunk(chunks), window=window)
+    assert lazy.aoi.chunks is not None
+    result = lazy.compute()
+    xr.testing.assert_equal(result.aoi.isnull(), expected.aoi.isnull())
+    xr.testing.assert_allclose(result, expected, rtol=0, atol=1e-6)
+    assert result.attrs == expected.attrs
+
+
+@settings(max_examples=6, deadline=None)
+@given(chunk_y=st.integers(5, 60), chunk_x=st.integers(5, 70), window=st.sampled_from([3, 5, 9]))
+def test_dask_equals_numpy_any_chunking(chunk_y, chunk_x, window):
+    xyz = cube(views=1, height=60, width=80, dtype=np.float64)
+    expected = angle_of_incidence(xyz, window=window)
+    result = angle_of_incidence(xyz.chunk({"y": chunk_y, "x": chunk_x}), window=window).compute()
+    xr.testing.assert_equal(result.aoi.isnull(), expected.aoi.isnull())
+    xr.testing.assert_allclose(result, expected, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("window", [2, 1, 0, -3, 4.0, 5.0, "7", True, None])
+def test_bad_window_raises(window):
+    with pytest.raises(ValueError, match="window must be an odd integer >= 3"):
+        angle_of_incidence(cube(views=1), window=window)
+
+
+@pytest.mark.parametrize("jump", [0, -0.1, np.inf, np.nan, "0.02"])
+def test_bad_jump_raises(jump):
+    with pytest.raises(ValueError, match="jump must be a positive finite number"):
+        angle_of_incidence(cube(views=1), jump=jump)
+
+
+def test_bad_dims_raise():
+    xyz = cube(views=1)
+    with pytest.raises(ValueError, match=r"missing \['axis'\]"):
+        angle_of_incidence(xyz.rename(axis="component"))
+    with pytest.raises(ValueError, match="'x', 'y', 'z'"):
+        angle_of_incidence(xyz.assign_coords(axis=["a", "b", "c"]))
+    with pytest.raises(ValueError, match="size 3"):
+        angle_of_incidence(xyz.drop_vars("axis").isel(axis=[0, 1]))
