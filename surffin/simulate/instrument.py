@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from surffin.calibration import TERMS, instrument_function
 from surffin.scattering import scattering_model
 from surffin.simulate.camera import PinholeCamera
 from surffin.simulate.scene import Geometry
@@ -25,9 +26,6 @@ if TYPE_CHECKING:
     from surffin.simulate.presets import Preset
 
 __all__ = ["TERMS", "Instrument", "instrument_function", "draw_instrument", "observe"]
-
-#: Names of the instrument function's coefficients, in storage order.
-TERMS = ("A", "B", "C", "D", "E")
 
 # Weights of the radial (vignetting-like), smooth low-order and white parts of
 # each coefficient's spatial pattern before it is scaled to unit variance.
@@ -81,25 +79,6 @@ class Instrument:
         level = self.gain * rho_wall * E
         coef = np.stack([level * A, level * B, C / E, D / E, np.ones_like(E)])
         return coef, 1.0 / rho_wall
-
-
-def instrument_function(coef: np.ndarray, distance: np.ndarray, aoi: np.ndarray) -> np.ndarray:
-    """Eq. 5: ``(A + B / d^2) (C theta^2 + D theta + E)``.
-
-    Parameters
-    ----------
-    coef : (5, ...) ndarray
-        A, B (m^2), C, D, E, broadcasting against ``distance``.
-    distance : ndarray, metres
-    aoi : ndarray, radians
-
-    Returns
-    -------
-    ndarray
-        Broadcast shape of the inputs.
-    """
-    A, B, C, D, E = coef
-    return (A + B / distance**2) * ((C * aoi + D) * aoi + E)
 
 
 def _unit(field: np.ndarray) -> np.ndarray:

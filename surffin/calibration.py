@@ -1,0 +1,840 @@
+"""Radiometric calibration (method step 3): the per-pixel instrument function and the scale k.
+
+The instrument function of the paper's eq. 5,
+
+    f(d, theta) = (A + B / d^2) (C theta^2 + D theta + E),   theta in radians, d in metres,
+
+is fitted per pixel to the views of a flat Lambertian wall after dividing their
+intensities by cos(theta) (eq. 4): ``y = I / cos(theta)``. The two factors share
+one scale, fixed by the gauge E = 1. Calibrated reflectance is then
+``R = I / (k f)`` (eq. 2), with k from views of a reference panel (eq. 6).
+
+Sufficient statistics. With ``u = [1, w]``, ``w = 1 / d^2``, ``v = [theta^2,
+theta, 1]`` and ``z = u (x) v``, the model is linear in the six products
+``m = vec([A, B]^T [C, D, E])``: ``f = m . z``, with ``m`` of rank one. The whole
+least-squares problem of a pixel therefore depends on its observations only
+through ``G = sum z z^T``, ``b = sum y z`` and ``sum y^2``. The entries of ``G``
+are moments ``sum w^a theta^c`` (a <= 2, c <= 4: 15 of them) and those of
+``b`` are ``sum y w^a theta^c`` (a <= 1, c <= 2: 6), so :class:`WallStatistics`
+keeps 22 float64 per pixel, accumulated view by view: memory and fit time do
+not depend on the number of views. ``N`` and ``sum y`` are the moments with
+a = c = 0.
+
+Fit (:func:`fit_calibration`), per pixel and batched over pixels:
+
+1. the unconstrained linear least squares ``m_hat = G^-1 b`` on the
+   Jacobi-scaled system; pixels whose scaled ``G`` is (nearly) singular, i.e.
+   whose views do not separate the effects of distance and angle, are rejected;
+2. a start of rank one with E = 1: the (C, D) of the leading singular pair of
+   the 2x3 matrix ``M_hat``, or the sensor's typical (C, D) (a fit of the
+   statistics pooled over all pixels) where that has the lower cost, each with
+   its exact (A, B) (a 2x2 solve in the metric of ``G``); with few or poorly
+   spread views ``m_hat`` is noisy and its projection alone may start in the
+   wrong valley;
+3. Gauss-Newton on ``p = (A, B, C, D)`` minimising
+   ``Q(p) = (m(p) - m_hat)^T G (m(p) - m_hat)``, which equals the sum of
+   squared residuals minus the constant ``SSR(m_hat)``; computing it from the
+   difference ``m - m_hat`` avoids the cancellation of
+   ``sum y^2 - 2 b^T m + m^T G m``. The 4x4 normal equations ``J^T G J``
+   (J = dm/dp, analytic) are solved with scaled columns (C and D are ~-0.99
+   correlated), a step is halved until the cost does not rise (beyond 1e-14
+   relative), and the iteration stops when the predicted cost decrease falls
+   below ``1e-12`` of the cost (or of a floor at 1e-24 of the signal energy,
+   for noise-free data).
+
+Pixels without a fit are NaN with a status code (:data:`CALIBRATION_STATUS`),
+never a number.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Callable, Collection, Iterable
+from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+import xarray as xr
+
+from surffin.errors import CalibrationError
+from surffin.geometry import DEFAULT_JUMP, DEFAULT_WINDOW, _angle_of_incidence
+from surffin.ingest import describe_file
+from surffin.store import provenance
+
+if TYPE_CHECKING:
+    from surffin.campaign import Campaign, Roi
+
+__all__ = [
+    "TERMS",
+    "CALIBRATION_STATUS",
+    "DEFAULT_MIN_OBS",
+    "instrument_function",
+    "Observation",
+    "WallStatistics",
+    "fit_calibration",
+    "reference_scale",
+    "calibration_diagnostics",
+    "calibrate",
+    "reflectance",
+]
+
+log = logging.getLogger("surffin")
+
+#: Names of the instrument function's coefficients, in storage order (the ``term`` coordinate).
+TERMS = ("A", "B", "C", "D", "E")
+
+#: Default minimum number of wall observations of a pixel for a fit.
+DEFAULT_MIN_OBS = 12
+
+#: Names of the ``status`` codes of a calibration fit (CF ``flag_meanings``): 0 the fit
+#: converged; 1 the pixel has fewer wall observations than ``min_obs``; 2 its observations do
+#: not separate the effects of distance and angle (e.g. one distance, or fewer than three
+#: angles): the Jacobi-scaled statistics are singular; 3 the fit did not converge.
+CALIBRATION_STATUS = {0: "converged", 1: "too_few_observations", 2: "singular_statistics", 3: "not_converged"}
+
+# Moments kept per pixel: S[a, c] = sum w^a theta^c (a <= 2, c <= 4) at 5 a + c,
+# T[a, c] = sum y w^a theta^c (a <= 1, c <= 2) at 15 + 3 a + c, then sum y^2.
+_N_MOMENTS = 22
+_T0 = 15
+_YY = 21
+# z = u (x) v as powers (a, c) of w and theta: u = [1, w], v = [theta^2, theta, 1].
+_Z_POWERS = ((0, 2), (0, 1), (0, 0), (1, 2), (1, 1), (1, 0))
+_G_INDEX = np.array([[5 * (a + a2) + c + c2 for a2, c2 in _Z_POWERS] for a, c in _Z_POWERS])
+_B_INDEX = np.array([_T0 + 3 * a + c for a, c in _Z_POWERS])
+# Pixels per block: the temporaries of accumulation and fit stay in the cache.
+_BLOCK = 16384
+# Smallest pivot of the Jacobi-scaled G (unit diagonal) of a pixel with a fit.
+_MIN_PIVOT = 1e-12
+_MAX_ITER = 30
+_MAX_HALVINGS = 30
+_FTOL = 1e-12
+_COST_RISE = 1e-14
+_FLOOR = 1e-24
+# Scale factor of the median absolute deviation to a normal standard deviation.
+_MAD_SIGMA = 1.4826
+
+
+def instrument_function(coef, distance, aoi):
+    """Eq. 5: ``f = (A + B / d^2) (C theta^2 + D theta + E)``.
+
+    Parameters
+    ----------
+    coef : (5, ...) ndarray, or DataArray with a ``term`` dimension
+        A, B (m^2), C, D, E in the order of :data:`TERMS` (numpy: along the
+        first axis; xarray: selected by the ``term`` coordinate), broadcasting
+        against ``distance`` and ``aoi``.
+    distance : ndarray or DataArray, metres
+    aoi : ndarray or DataArray, radians
+
+    Returns
+    -------
+    ndarray or DataArray
+        Broadcast of the inputs (aligned by coordinates for xarray; lazy on dask).
+    """
+    if isinstance(coef, xr.DataArray):
+        A, B, C, D, E = (coef.sel(term=term, drop=True) for term in TERMS)
+    else:
+        A, B, C, D, E = coef
+    return (A + B / distance**2) * ((C * aoi + D) * aoi + E)
+
+
+class Observation(NamedTuple):
+    """One view of the calibration set, on the full sensor grid.
+
+    Attributes
+    ----------
+    name : str
+        The view file (for messages).
+    intensity : (H, W) ndarray
+        Camera intensity.
+    distance : (H, W) ndarray of float, metres
+    aoi : (H, W) ndarray of float, radians
+    valid : (H, W) ndarray of bool
+        Pixels with a return; pixels with a NaN distance or AOI are left out too.
+    """
+
+    name: str
+    intensity: np.ndarray
+    distance: np.ndarray
+    aoi: np.ndarray
+    valid: np.ndarray
+
+
+def _usable(intensity, distance, aoi, valid) -> tuple[np.ndarray, ...]:
+    """Flat float64 copies and the usable mask: valid, finite, distance > 0, |theta| < pi/2."""
+    arrays = [np.asarray(a, dtype=np.float64).ravel() for a in (intensity, distance, aoi)]
+    intensity, distance, aoi = arrays
+    with np.errstate(invalid="ignore"):
+        ok = np.asarray(valid, dtype=bool).ravel() & (distance > 0) & (np.abs(aoi) < 0.5 * np.pi)
+    ok &= np.isfinite(intensity)
+    return intensity, distance, aoi, ok
+
+
+class WallStatistics:
+    """Sufficient statistics of the calibration fit, accumulated view by view.
+
+    Parameters
+    ----------
+    shape : (int, int)
+        Sensor (height, width).
+
+    Attributes
+    ----------
+    moments : (22, height, width) ndarray of float64
+        Per pixel ``sum w^a theta^c`` (a <= 2, c <= 4), ``sum y w^a theta^c``
+        (a <= 1, c <= 2) and ``sum y^2``, with ``w = 1/d^2`` (m^-2), theta in
+        radians and ``y = I / cos(theta)`` (module docstring).
+    n_views : int
+        Views added.
+    """
+
+    def __init__(self, shape: tuple[int, int]):
+        height, width = (int(n) for n in shape)
+        if height < 1 or width < 1:
+            raise ValueError(f"shape must be a positive (height, width), got {shape!r}")
+        self.shape = (height, width)
+        self.moments = np.zeros((_N_MOMENTS, height, width))
+        self.n_views = 0
+
+    def add(self, intensity, distance, aoi, valid) -> WallStatistics:
+        """Add one view of the wall.
+
+        Parameters
+        ----------
+        intensity : (H, W) array_like
+            Camera intensity of a Lambertian wall.
+        distance : (H, W) array_like, metres
+        aoi : (H, W) array_like, radians
+        valid : (H, W) array_like of bool
+            Pixels to use; NaN or non-positive distances, NaN intensities and
+            AOIs outside [0, pi/2) are left out whatever ``valid`` says.
+
+        Returns
+        -------
+        WallStatistics
+            ``self``, updated.
+        """
+        for name, array in (("intensity", intensity), ("distance", distance), ("aoi", aoi), ("valid", valid)):
+            if np.shape(array) != self.shape:
+                raise ValueError(f"{name} must have the sensor shape {self.shape}, got {np.shape(array)}")
+        intensity, distance, aoi, ok = _usable(intensity, distance, aoi, valid)
+        flat = self.moments.reshape(_N_MOMENTS, -1)
+        for start in range(0, ok.size, _BLOCK):
+            block = slice(start, start + _BLOCK)
+            _accumulate(flat[:, block], intensity[block], distance[block], aoi[block], ok[block])
+        self.n_views += 1
+        return self
+
+    def merge(self, other: WallStatistics) -> WallStatistics:
+        """Add the views of ``other`` (statistics of the same sensor) to ``self``; returns ``self``."""
+        if other.shape != self.shape:
+            raise ValueError(f"cannot merge statistics of shape {other.shape} into {self.shape}")
+        self.moments += other.moments
+        self.n_views += other.n_views
+        return self
+
+    @property
+    def n_obs(self) -> np.ndarray:
+        """(H, W) ndarray of int64: observations per pixel."""
+        return np.rint(self.moments[0]).astype(np.int64)
+
+
+def _accumulate(moments, intensity, distance, aoi, ok) -> None:
+    """Add one block of observations (n,) to its moments (22, n), in place."""
+    # q (1 on usable pixels, else 0) masks every product; w = q / d^2
+    q = ok.astype(np.float64)
+    t = np.where(ok, aoi, 0.0)
+    w = np.where(ok, distance, 1.0)
+    np.multiply(w, w, out=w)
+    np.divide(q, w, out=w)
+    y = np.where(ok, intensity, 0.0) / np.cos(t)
+    powers = [q]
+    for _ in range(4):
+        powers.append(powers[-1] * t)
+    for a in range(3):
+        for c, power in enumerate(powers):
+            moments[5 * a + c] += power
+        if a < 2:
+            for c in range(3):
+                moments[_T0 + 3 * a + c] += powers[c] * y
+            powers = [power * w for power in powers]
+    moments[_YY] += y * y
+
+
+def _system(moments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """G (6, 6, n) and b (6, n) of the moments (22, n) of n pixels."""
+    return moments[_G_INDEX], moments[_B_INDEX]
+
+
+def _solve_spd(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Solve symmetric positive definite systems a x = b, batched over the last axis, never raising.
+
+    Gaussian elimination without pivoting (stable for SPD matrices) on the
+    Jacobi-scaled matrix, vectorised over pixels.
+
+    Parameters
+    ----------
+    a : (k, k, n) ndarray
+    b : (k, n) ndarray
+
+    Returns
+    -------
+    x : (k, n) ndarray
+        Meaningless where ``pivot`` is not positive.
+    pivot : (n,) ndarray
+        Smallest pivot of the scaled matrix (unit diagonal), an upper bound of
+        its smallest eigenvalue: ~1e-16 or below (or -inf) when a is singular.
+    """
+    k = len(b)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        scale = 1.0 / np.sqrt(np.einsum("iin->in", a))
+        a = a * scale[:, None] * scale[None, :]
+        x = b * scale
+        pivots = np.empty_like(x)
+        for row in range(k):
+            pivots[row] = a[row, row]
+            factor = a[row + 1 :, row] / a[row, row]
+            a[row + 1 :, row + 1 :] -= factor[:, None] * a[None, row, row + 1 :]
+            x[row + 1 :] -= factor * x[row]
+        for row in range(k - 1, -1, -1):
+            x[row] = (x[row] - np.einsum("in,in->n", a[row, row + 1 :], x[row + 1 :])) / a[row, row]
+    return x * scale, np.where(np.isnan(pivots).any(axis=0), -np.inf, pivots.min(axis=0))
+
+
+def _rank_one_shape(m_hat: np.ndarray) -> np.ndarray:
+    """(C, D) (2, n) of the leading singular pair of M_hat = m_hat (6, n) as 2x3 matrices, scaled to E = 1.
+
+    The leading left singular vector u is the top eigenvector of the 2x2
+    ``M M^T`` (closed form); ``v = M^T u`` is then the leading right one up to scale.
+    """
+    M = m_hat.reshape(2, 3, -1)
+    p00, p01, p11 = (np.einsum("kn,kn->n", M[i], M[j]) for i, j in ((0, 0), (0, 1), (1, 1)))
+    half = 0.5 * (p00 - p11)
+    top = 0.5 * (p00 + p11) + np.sqrt(half * half + p01 * p01)
+    first = np.stack([top - p11, p01])
+    second = np.stack([p01, top - p00])
+    u = np.where(np.abs(first).sum(0) >= np.abs(second).sum(0), first, second)
+    u[0, ~np.any(u, axis=0)] = 1.0
+    v = np.einsum("ikn,in->kn", M, u)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return v[:2] / v[2]
+
+
+def _best_ab(cd: np.ndarray, G: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """p = (A, B, C, D) (4, n) with the (A, B) minimising the cost for given (C, D) (2, n), E = 1.
+
+    For fixed (C, D) the model is linear in (A, B), with design ``V = dm/d(A, B)``:
+    a 2x2 solve of ``V^T G V (A, B) = V^T b``.
+    """
+    C, D = cd
+    K = _contract_v(np.moveaxis(_contract_v(G, C, D), 0, 1), C, D)
+    h = _contract_v(b, C, D)
+    det = K[0, 0] * K[1, 1] - K[0, 1] * K[1, 0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        A = (K[1, 1] * h[0] - K[0, 1] * h[1]) / det
+        B = (K[0, 0] * h[1] - K[1, 0] * h[0]) / det
+    return np.concatenate([A[None], B[None], cd])
+
+
+def _start(m_hat: np.ndarray, G: np.ndarray, b: np.ndarray, shape: np.ndarray | None) -> np.ndarray:
+    """Start p (4, n): the rank-one projection of m_hat, or ``shape`` = (C, D) (2,) if its cost is lower.
+
+    m_hat (6 free products) is noisier than the rank-one fit (4 parameters);
+    the sensor's typical (C, D) is a safe second candidate because the angular
+    shape varies by a few % across the sensor (module docstring, step 2).
+    """
+    p = _best_ab(_rank_one_shape(m_hat), G, b)
+    if shape is None:
+        return p
+    other = _best_ab(np.repeat(np.reshape(shape, (2, 1)), p.shape[1], axis=1), G, b)
+    cost, other_cost = _cost(p, m_hat, G)[0], _cost(other, m_hat, G)[0]
+    return np.where((other_cost < cost) | ~np.isfinite(cost), other, p)
+
+
+def _products(p: np.ndarray) -> np.ndarray:
+    """m(p) = vec([A, B]^T [C, D, 1]) (6, n) of p = (A, B, C, D) (4, n)."""
+    A, B, C, D = p
+    return np.stack([A * C, A * D, A, B * C, B * D, B])
+
+
+def _contract_v(x: np.ndarray, C, D) -> np.ndarray:
+    """``(dm/dA, dm/dB)^T x``: ``sum_k x[(i, k)] v_k`` with v = (C, D, 1), along the first axis of x (6, ...).
+
+    Returns (2, ...).
+    """
+    x = x.reshape(2, 3, *x.shape[1:])
+    return x[:, 0] * C + x[:, 1] * D + x[:, 2]
+
+
+def _jt(x: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """J^T x for J = dm/dp of :func:`_products` at p (4, n), along the first axis of x (6, ..., n): (4, ..., n).
+
+    J is sparse: dm/dA = [C, D, 1, 0, 0, 0], dm/dB = [0, 0, 0, C, D, 1],
+    dm/dC = [A, 0, 0, B, 0, 0], dm/dD = [0, A, 0, 0, B, 0].
+    """
+    A, B, C, D = p
+    return np.concatenate([_contract_v(x, C, D), A * x[:2] + B * x[3:5]])
+
+
+def _cost(p: np.ndarray, m_hat: np.ndarray, G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Q(p) (n,) and G (m(p) - m_hat) (6, n)."""
+    d = _products(p) - m_hat
+    Gd = np.einsum("kln,ln->kn", G, d)
+    return np.einsum("kn,kn->n", d, Gd), Gd
+
+
+def _gauss_newton(p, m_hat, G, floor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Minimise Q over p (4, n), in place (module docstring, step 3).
+
+    Returns p, Q (n,) and a converged mask (n,): the predicted decrease of a
+    Gauss-Newton step fell below ``_FTOL`` times the cost plus ``floor`` (n,).
+    A pixel whose step does not lower the cost even when halved
+    ``_MAX_HALVINGS`` times stops, not converged. The pixels still iterating
+    are compacted when they fall below half of the working set.
+    """
+    cost, Gd = _cost(p, m_hat, G)
+    converged = np.zeros(p.shape[1], dtype=bool)
+    index = np.flatnonzero(np.isfinite(cost))
+    work = p[:, index], m_hat[:, index], G[..., index], floor[index], cost[index], Gd[:, index]
+    live = np.ones(index.size, dtype=bool)
+    for _ in range(_MAX_ITER):
+        if not live.any():
+            break
+        if live.sum() < live.size // 2:
+            p[:, index] = work[0]
+            cost[index] = work[4]
+            index, work, live = index[live], tuple(array[..., live] for array in work), live[live]
+        pw, mw, Gw, fw, cw, Gdw = work
+        H = _jt(np.moveaxis(_jt(Gw, pw), 0, 1), pw)
+        g = _jt(Gdw, pw)
+        step, pivot = _solve_spd(H, -g)
+        bad = ~live | ~((pivot > 0) & np.isfinite(step).all(axis=0))
+        done = ~bad & (0.5 * np.einsum("in,in->n", step, -g) <= _FTOL * cw + fw)
+        accepted = np.zeros(live.size, dtype=bool)
+        factor = 1.0
+        for _ in range(_MAX_HALVINGS):
+            todo = np.flatnonzero(~accepted & ~bad & (~done | (factor == 1.0)))
+            if todo.size == 0:
+                break
+            trial = pw[:, todo] + factor * step[:, todo]
+            c, gd = _cost(trial, mw[:, todo], Gw[..., todo])
+            ok = c <= cw[todo] * (1.0 + _COST_RISE) + fw[todo]
+            chosen = todo[ok]
+            pw[:, chosen], cw[chosen], Gdw[:, chosen] = trial[:, ok], c[ok], gd[:, ok]
+            accepted[chosen] = True
+            factor *= 0.5
+        converged[index[done]] = True
+        live &= ~done & accepted
+    p[:, index] = work[0]
+    cost[index] = work[4]
+    return p, cost, converged
+
+
+def _fit_block(
+    moments: np.ndarray, min_obs: int, shape: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fit the pixels of one block.
+
+    Parameters
+    ----------
+    moments : (22, n) ndarray of float64
+        :attr:`WallStatistics.moments` of n pixels.
+    min_obs : int
+    shape : (2,) ndarray, optional
+        Typical (C, D) of the sensor: a second start candidate (:func:`_start`).
+
+    Returns
+    -------
+    coef : (5, n) ndarray of float64
+        A, B, C, D, E = 1; NaN unless converged.
+    r2 : (n,) ndarray of float64
+        Coefficient of determination of the fit on ``y = I / cos(theta)``.
+    status : (n,) ndarray of int8
+        :data:`CALIBRATION_STATUS` codes.
+    """
+    n = moments.shape[1]
+    coef = np.full((5, n), np.nan)
+    r2 = np.full(n, np.nan)
+    status = np.full(n, 3, dtype=np.int8)
+    enough = moments[0] >= min_obs
+    status[~enough] = 1
+    index = np.flatnonzero(enough)
+    G, b = _system(moments[:, index])
+    m_hat, pivot = _solve_spd(G, b)
+    regular = pivot > _MIN_PIVOT
+    status[index[~regular]] = 2
+    index, G, b, m_hat = index[regular], G[..., regular], b[:, regular], m_hat[:, regular]
+    energy = np.einsum("kn,kn->n", m_hat, b)
+    p, cost, converged = _gauss_newton(_start(m_hat, G, b, shape), m_hat, G, _FLOOR * np.abs(energy))
+    converged &= np.isfinite(p).all(axis=0)
+    index, p, cost, energy = index[converged], p[:, converged], cost[converged], energy[converged]
+    coef[:4, index] = p
+    coef[4, index] = 1.0
+    count, total, squares = moments[0, index], moments[_T0, index], moments[_YY, index]
+    residual = np.maximum(squares - energy + cost, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r2[index] = 1.0 - residual / (squares - total * total / count)
+    status[index] = 0
+    return coef, r2, status
+
+
+def fit_calibration(stats: WallStatistics, *, min_obs: int = DEFAULT_MIN_OBS) -> xr.Dataset:
+    """Fit the instrument function of every pixel from its wall statistics.
+
+    Parameters
+    ----------
+    stats : WallStatistics
+        Accumulated views of a Lambertian wall.
+    min_obs : int, optional
+        Pixels with fewer observations get no fit (at least 4 parameters are fitted).
+
+    Returns
+    -------
+    Dataset
+        On the sensor grid (``y`` 0..H-1, ``x`` 0..W-1):
+        ``coef`` (term=[A, B, C, D, E], y, x) float64, gauge E = 1, NaN where
+        not fitted; ``r2`` (y, x) float64, fit of ``I / cos(theta)``;
+        ``n_obs`` (y, x) int32; ``status`` (y, x) int8, codes of
+        :data:`CALIBRATION_STATUS` (CF ``flag_values``/``flag_meanings``).
+    """
+    if isinstance(min_obs, bool) or not isinstance(min_obs, int | np.integer) or min_obs < 4:
+        raise ValueError(f"min_obs must be an integer >= 4 (the fit has 4 free parameters), got {min_obs!r}")
+    height, width = stats.shape
+    flat = stats.moments.reshape(_N_MOMENTS, -1)
+    coef = np.empty((5, flat.shape[1]))
+    r2 = np.empty(flat.shape[1])
+    status = np.empty(flat.shape[1], dtype=np.int8)
+    pooled = np.sum(flat, axis=1, where=flat[0] >= min_obs, keepdims=True)
+    typical = _fit_block(pooled, int(min_obs))[0][2:4, 0]
+    shape = typical if np.isfinite(typical).all() else None
+    for start in range(0, flat.shape[1], _BLOCK):
+        block = slice(start, start + _BLOCK)
+        coef[:, block], r2[block], status[block] = _fit_block(flat[:, block], int(min_obs), shape)
+    image = ("y", "x")
+    return xr.Dataset(
+        {
+            "coef": (
+                ("term", "y", "x"),
+                coef.reshape(5, height, width),
+                {
+                    "units": "1",
+                    "long_name": "instrument function coefficients, gauge E = 1: R = I / (scale_k f)",
+                    "model": "f = (A + B/d^2)(C theta^2 + D theta + E), d in m, theta in rad",
+                },
+            ),
+            "r2": (image, r2.reshape(height, width), {"units": "1", "long_name": "coefficient of determination"}),
+            "n_obs": (
+                image,
+                stats.n_obs.astype(np.int32),
+                {"units": "1", "long_name": "wall observations of the pixel"},
+            ),
+            "status": (
+                image,
+                status.reshape(height, width),
+                {
+                    "long_name": "calibration fit status",
+                    "flag_values": list(CALIBRATION_STATUS),
+                    "flag_meanings": " ".join(CALIBRATION_STATUS.values()),
+                },
+            ),
+        },
+        coords={
+            "term": list(TERMS),
+            "y": ("y", np.arange(height), {"long_name": "sensor row"}),
+            "x": ("x", np.arange(width), {"long_name": "sensor column"}),
+        },
+        attrs={"min_obs": int(min_obs), "wall_views": stats.n_views},
+    )
+
+
+def reference_scale(
+    coef: np.ndarray, views: Iterable[Observation], roi: Roi, reflectance: float
+) -> tuple[float, dict]:
+    """The scale k of eq. 6 from views of a reference panel of known reflectance.
+
+    On every panel pixel, ``I / (f(d, theta) cos(theta))`` is the panel's
+    reflectance relative to the calibration wall (f is fitted to the wall's
+    ``I / cos(theta)``): its median over the roi pixels of all views is the
+    intensity ratio r of panel and wall under the same conditions, and
+    ``k = r / reflectance``.
+
+    Parameters
+    ----------
+    coef : (5, H, W) ndarray of float64
+        Fitted coefficients on the sensor grid (NaN pixels are skipped).
+    views : iterable of Observation
+        Views of the panel on the sensor grid, consumed one at a time.
+    roi : Roi
+        Panel pixels, sensor coordinates, in every view.
+    reflectance : float
+        The panel's known reflectance, in (0, 1].
+
+    Returns
+    -------
+    scale_k : float
+    details : dict
+        ``ratio`` (r), ``n_pixels``, ``n_views``, ``relative_spread`` (robust
+        standard deviation of the per-pixel ratios, 1.4826 MAD / r),
+        ``view_range`` ((max - min) / r of the per-view medians) and
+        ``per_view`` (view name -> median ratio).
+
+    Raises
+    ------
+    CalibrationError
+        No view, or a view without a valid, calibrated pixel in the roi.
+    """
+    if not 0.0 < reflectance <= 1.0:
+        raise CalibrationError(f"reference reflectance must be in (0, 1], got {reflectance!r}")
+    rows, cols = roi.slices
+    local = coef[:, rows, cols].reshape(5, -1)
+    ratios, per_view = [], {}
+    for view in views:
+        intensity, distance, aoi, ok = _usable(
+            *(array[rows, cols] for array in (view.intensity, view.distance, view.aoi, view.valid))
+        )
+        f = instrument_function(local, distance, aoi) * np.cos(aoi)
+        with np.errstate(invalid="ignore"):
+            ok &= f > 0
+        if not ok.any():
+            raise CalibrationError(
+                f"{view.name}: the reference roi (y {list(roi.y)}, x {list(roi.x)}) has no valid pixel with a "
+                f"fitted calibration in this view; check calibration.reference.roi in campaign.yaml and that the "
+                f"panel is seen there"
+            )
+        ratio = intensity[ok] / f[ok]
+        per_view[Path(view.name).name] = float(np.median(ratio))
+        ratios.append(ratio)
+    if not ratios:
+        raise CalibrationError("no reference panel view given; calibration.reference.views needs at least one view")
+    ratios = np.concatenate(ratios)
+    ratio = float(np.median(ratios))
+    medians = np.array(list(per_view.values()))
+    details = {
+        "ratio": ratio,
+        "n_pixels": int(ratios.size),
+        "n_views": len(per_view),
+        "relative_spread": float(_MAD_SIGMA * np.median(np.abs(ratios - ratio)) / ratio),
+        "view_range": float((medians.max() - medians.min()) / ratio),
+        "per_view": per_view,
+    }
+    return ratio / reflectance, details
+
+
+def calibration_diagnostics(ds: xr.Dataset) -> dict:
+    """Fit quality and the spatial behaviour of the coefficients (paper section 3.3, Table 2).
+
+    Parameters
+    ----------
+    ds : Dataset
+        From :func:`fit_calibration` or :func:`calibrate`.
+
+    Returns
+    -------
+    dict
+        Over the converged pixels: ``mean_r2`` (paper: 0.98), ``median_r2``;
+        ``variability_percent`` (term -> 100 std / |mean| across the image;
+        paper: A 8.94, B 3.92, C 1.79, D 1.38, E 4.44, in an unstated gauge; E
+        is 0 in the gauge E = 1); ``correlation`` (matrix across pixels of the
+        terms that vary, listed in ``correlation_terms``; paper Table 2: C-D
+        -0.99); ``n_fitted``, ``n_pixels`` and ``status_counts``
+        (status name -> pixels).
+    """
+    status = np.asarray(ds["status"]).ravel()
+    fitted = status == 0
+    coef = np.asarray(ds["coef"].transpose("term", ...)).reshape(len(TERMS), -1)[:, fitted]
+    r2 = np.asarray(ds["r2"]).ravel()[fitted]
+    counts = {name: int(np.count_nonzero(status == code)) for code, name in CALIBRATION_STATUS.items()}
+    if not fitted.any():
+        raise CalibrationError(f"no pixel has a fitted calibration (status counts {counts})")
+    mean, std = coef.mean(axis=1), coef.std(axis=1)
+    varying = [index for index in range(len(TERMS)) if std[index] > 0]
+    correlation = np.corrcoef(coef[varying]) if varying else np.empty((0, 0))
+    return {
+        "mean_r2": float(r2.mean()),
+        "median_r2": float(np.median(r2)),
+        "variability_percent": {term: float(100.0 * s / abs(m)) for term, m, s in zip(TERMS, mean, std)},
+        "correlation_terms": [TERMS[index] for index in varying],
+        "correlation": np.atleast_2d(correlation).tolist(),
+        "n_fitted": int(fitted.sum()),
+        "n_pixels": int(status.size),
+        "status_counts": counts,
+    }
+
+
+def _observe(campaign: Campaign, path: os.PathLike, window: int, jump: float) -> Observation:
+    """Read one view and compute its AOI and distance on the full sensor."""
+    view = campaign.read_view(path)
+    aoi, distance = _angle_of_incidence(view.xyz, window, jump=jump)
+    return Observation(str(path), view.intensity, distance, aoi, view.valid)
+
+
+def calibrate(
+    campaign: Campaign,
+    *,
+    window: int = DEFAULT_WINDOW,
+    jump: float = DEFAULT_JUMP,
+    min_obs: int = DEFAULT_MIN_OBS,
+    exclude: Collection[str] = (),
+    progress: Callable[[int, int], None] | None = None,
+) -> xr.Dataset:
+    """Fit the radiometric calibration of a campaign's camera.
+
+    The wall views are read one at a time (AOI and distance on the full sensor
+    by :mod:`surffin.geometry`) and added to :class:`WallStatistics`, so memory
+    does not grow with their number; then every pixel is fitted
+    (:func:`fit_calibration`) and the reference panel views give the scale k
+    (:func:`reference_scale`).
+
+    Parameters
+    ----------
+    campaign : Campaign
+        With a ``calibration:`` section.
+    window, jump : optional
+        AOI plane-fit window (odd, pixels) and depth-jump threshold of
+        :func:`surffin.geometry.angle_of_incidence`.
+    min_obs : int, optional
+        Fewest wall observations of a pixel for a fit.
+    exclude : collection of str, optional
+        Stems of wall views left out of the fit (e.g. held out for validation).
+    progress : callable (done, total), optional
+        Called after each view read (wall, then reference views).
+
+    Returns
+    -------
+    Dataset
+        :func:`fit_calibration`'s variables on the full sensor grid; attrs
+        ``scale_k``, ``reference_reflectance``, ``reference`` (details of
+        :func:`reference_scale`), ``diagnostics``
+        (:func:`calibration_diagnostics`), ``campaign`` and provenance.
+
+    Raises
+    ------
+    CalibrationError
+        No calibration section, unknown excluded views, no fitted pixel, or a
+        reference view without valid panel pixels.
+    """
+    if campaign.calibration is None:
+        raise CalibrationError(
+            f"{campaign.path}: no calibration section; add calibration: (wall, reference) or use an existing "
+            f"calibration store"
+        )
+    calibration = campaign.calibration
+    excluded = set(exclude)
+    unknown = sorted(excluded - {path.stem for path in calibration.wall})
+    if unknown:
+        raise CalibrationError(
+            f"{campaign.path}: calibration.wall has no views named {unknown}; exclude only its view stems"
+        )
+    wall = [path for path in calibration.wall if path.stem not in excluded]
+    reference = calibration.reference
+    total = len(wall) + len(reference.views)
+    step = max(1, total // 10)
+    done = 0
+
+    def advance(path) -> None:
+        nonlocal done
+        done += 1
+        if progress is not None:
+            progress(done, total)
+        if done % step == 0 or done == total:
+            log.info("calibration: %d/%d views (%s)", done, total, path.name)
+
+    stats = WallStatistics((campaign.camera.height, campaign.camera.width))
+    for path in wall:
+        view = _observe(campaign, path, window, jump)
+        stats.add(view.intensity, view.distance, view.aoi, view.valid)
+        advance(path)
+    ds = fit_calibration(stats, min_obs=min_obs)
+    try:
+        diagnostics = calibration_diagnostics(ds)
+    except CalibrationError as exc:
+        raise CalibrationError(
+            f"{campaign.path}: calibration.wall: {exc}; the wall views must cover each pixel at several "
+            f"distances and angles, at least {min_obs} times"
+        ) from exc
+
+    def panel_views():
+        for path in reference.views:
+            yield _observe(campaign, path, window, jump)
+            advance(path)
+
+    scale_k, details = reference_scale(ds["coef"].values, panel_views(), reference.roi, reference.reflectance)
+    log.info(
+        "calibration: %d of %d pixels fitted (status counts %s), mean R2 %.4f, scale_k %.5g",
+        diagnostics["n_fitted"],
+        diagnostics["n_pixels"],
+        diagnostics["status_counts"],
+        diagnostics["mean_r2"],
+        scale_k,
+    )
+    parameters = {"window": window, "jump": jump, "min_obs": min_obs, "exclude": sorted(excluded)}
+    inputs = {str(path.relative_to(campaign.root)): describe_file(path) for path in (*wall, *reference.views)}
+    return ds.assign_attrs(
+        scale_k=scale_k,
+        reference_reflectance=reference.reflectance,
+        reference=details,
+        diagnostics=diagnostics,
+        campaign=campaign.name,
+        **provenance("calibration", parameters, inputs),
+    )
+
+
+def reflectance(
+    intensity: xr.DataArray, distance: xr.DataArray, aoi: xr.DataArray, coef: xr.DataArray, scale_k: float
+) -> xr.DataArray:
+    """Calibrated absolute reflectance ``R = I / (k f(d, theta))`` (paper eq. 2).
+
+    Parameters
+    ----------
+    intensity : (view, y, x) DataArray
+        Camera intensity; ``y``, ``x`` coordinates are sensor indices.
+    distance : (view, y, x) DataArray, metres
+    aoi : (view, y, x) DataArray, radians
+    coef : (term, y, x) DataArray
+        The calibration's coefficients on (at least) the same sensor pixels;
+        selected by the ``y``/``x`` coordinates of ``intensity``.
+    scale_k : float
+        The calibration's scale k.
+
+    Returns
+    -------
+    (view, y, x) DataArray
+        Reflectance at the observed AOI, NaN where an input is NaN or
+        ``f <= 0``. Lazy when an input is dask-backed.
+
+    Raises
+    ------
+    CalibrationError
+        ``scale_k`` is not a positive number, or the calibration does not cover
+        the pixels of ``intensity``.
+    """
+    for name, array in (("intensity", intensity), ("distance", distance), ("aoi", aoi), ("coef", coef)):
+        if not isinstance(array, xr.DataArray):
+            raise TypeError(f"{name} must be an xarray.DataArray, got {type(array).__name__}")
+    if "term" not in coef.dims:
+        raise ValueError(f"coef must have dims (term, y, x), got {coef.dims}")
+    if not (isinstance(scale_k, int | float | np.floating) and math.isfinite(scale_k) and scale_k > 0):
+        raise CalibrationError(f"scale_k must be a positive finite number, got {scale_k!r}")
+    missing = [dim for dim in ("y", "x") if dim not in intensity.coords or dim not in coef.coords]
+    if missing:
+        raise ValueError(f"intensity and coef need {missing} coordinates (sensor indices) to be aligned")
+    try:
+        intensity, distance, aoi = xr.align(intensity, distance, aoi, join="exact")
+    except ValueError as exc:
+        raise ValueError(f"intensity, distance and aoi must share their coordinates: {exc}") from exc
+    try:
+        local = coef.sel(y=intensity["y"].values, x=intensity["x"].values)
+    except KeyError as exc:
+        raise CalibrationError(
+            f"the calibration (y {int(coef.y.min())}..{int(coef.y.max())}, x {int(coef.x.min())}.."
+            f"{int(coef.x.max())}) does not cover the image's pixels (y {int(intensity.y.min())}.."
+            f"{int(intensity.y.max())}, x {int(intensity.x.min())}..{int(intensity.x.max())}); use a calibration "
+            f"of the same camera on its full sensor"
+        ) from exc
+    f = instrument_function(local, distance, aoi)
+    out = (intensity / (scale_k * f)).where(f > 0).transpose(*intensity.dims)
+    out.name = "reflectance"
+    out.attrs = {"units": "1", "long_name": "absolute reflectance at the observed angle of incidence"}
+    return out
