@@ -8,9 +8,12 @@ configfile: workflow.source_path("config/config.yaml")
 
 include: "workflow/rules/common.smk"
 include: "workflow/rules/ingest.smk"
+include: "workflow/rules/calibration.smk"
+include: "workflow/rules/method.smk"
+include: "workflow/rules/classify.smk"
 
 
 rule all:
     input:
-        ingest_stores,
+        final_outputs,
     default_target: True

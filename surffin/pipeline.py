@@ -1,25 +1,52 @@
 """Stage entry points: campaign or stores in, one complete store out.
 
-Each function here is what one workflow rule runs (through a two-line script in
+Each function here is what one workflow rule runs (through a short script in
 ``workflow/scripts/``); they are plain Python and usable without snakemake.
+:func:`run_stage` serves every per-item stage of :mod:`surffin.stages`: it
+opens the input stores, runs the stage under the chosen dask scheduler with
+progress in the log, and writes the output store atomically with provenance.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import time
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
-from surffin.campaign import read_campaign
-from surffin.ingest import ingest_item
-from surffin.store import write_store
+import dask
+import numpy as np
+from dask.callbacks import Callback
 
-__all__ = ["run_ingest", "logging_to"]
+from surffin import stages
+from surffin.errors import StoreError
+from surffin.store import open_store, provenance, write_store
+
+__all__ = [
+    "STAGES",
+    "logging_to",
+    "dask_scheduler",
+    "run_ingest",
+    "run_stage",
+    "run_calibration",
+    "check_calibration",
+    "run_training",
+    "run_summary",
+]
 
 log = logging.getLogger("surffin")
+
+#: Per-item stages run by :func:`run_stage`: name -> stage function.
+STAGES = {
+    "aoi": stages.aoi_stage,
+    "reflectance": stages.reflectance_stage,
+    "registration": stages.registration_stage,
+    "features": stages.features_stage,
+    "labels": stages.labels_stage,
+}
 
 
 @contextlib.contextmanager
@@ -47,6 +74,51 @@ def logging_to(path: str | os.PathLike | None) -> Iterator[logging.Logger]:
             handler.close()
 
 
+class _LogProgress(Callback):
+    """Log the share of dask tasks done, in steps of 10 %."""
+
+    def _start_state(self, dsk, state):
+        self._total = max(1, sum(len(state[key]) for key in ("ready", "waiting", "running")) + len(state["finished"]))
+        self._next = 0.1
+
+    def _posttask(self, key, result, dsk, state, worker_id):
+        done = len(state["finished"]) / self._total
+        if done >= self._next:
+            log.info("progress: %d %% of %d tasks", int(100 * done), self._total)
+            self._next = (int(done * 10) + 1) / 10
+
+
+@contextlib.contextmanager
+def dask_scheduler(scheduler: str | None, threads: int = 1) -> Iterator[None]:
+    """Run dask computations on ``scheduler`` inside the block.
+
+    Parameters
+    ----------
+    scheduler : {"threads", "processes", "synchronous"} or address, optional
+        A ``tcp://...`` (or other) address connects to a running
+        ``dask.distributed`` scheduler; None keeps dask's default.
+    threads : int
+        Workers of the local ``threads`` / ``processes`` schedulers.
+    """
+    if scheduler is None:
+        yield
+    elif "://" in scheduler:
+        from distributed import Client
+
+        with Client(scheduler):
+            yield
+    else:
+        with dask.config.set(scheduler=scheduler, num_workers=threads), _LogProgress():
+            yield
+
+
+def _timed_write(ds, output, chunks) -> Path:
+    start = time.perf_counter()
+    path = write_store(ds, output, chunks=chunks)
+    log.info("wrote %s in %.2f s", path, time.perf_counter() - start)
+    return path
+
+
 def run_ingest(
     campaign: str | os.PathLike,
     item: str,
@@ -55,26 +127,183 @@ def run_ingest(
     chunks: Mapping[str, int] | None = None,
     log_path: str | os.PathLike | None = None,
 ) -> Path:
-    """Read an item's view files and write its ingest store.
+    """Read an item's view files and write its ingest store (``ingest/<item>.zarr``)."""
+    from surffin.campaign import read_campaign
+    from surffin.ingest import ingest_item
 
-    Parameters
-    ----------
-    campaign : path-like
-        The campaign directory.
-    item : str
-        Specimen or scene name.
-    store : path-like
-        Output store (``ingest/<item>.zarr``).
-    chunks : mapping, optional
-        Chunk sizes over ``y`` and ``x``.
-    log_path : path-like, optional
-        Log file of the stage.
-    """
     with logging_to(log_path):
-        start = time.perf_counter()
         camp = read_campaign(campaign, require_calibration=False)
         ds = ingest_item(camp, item)
         log.info("ingest %s: %d views, cube %s", item, ds.sizes["view"], dict(ds.sizes))
-        path = write_store(ds, store, chunks=chunks)
-        log.info("wrote %s in %.2f s", path, time.perf_counter() - start)
+        return _timed_write(ds, store, chunks)
+
+
+def run_stage(
+    stage: str,
+    output: str | os.PathLike,
+    *,
+    stores: Mapping[str, str | os.PathLike],
+    params: Mapping | None = None,
+    chunks: Mapping[str, int] | None = None,
+    scheduler: str | None = None,
+    threads: int = 1,
+    log_path: str | os.PathLike | None = None,
+) -> Path:
+    """Run one per-item stage from its input stores to its output store.
+
+    Parameters
+    ----------
+    stage : str
+        A key of :data:`STAGES`.
+    output : path-like
+        The output store.
+    stores : mapping of str to path-like
+        Input stores by the stage function's argument names (``ingest``,
+        ``aoi``, ``reflectance``, ``registered``, ``calibration``, ...).
+    params : mapping, optional
+        Keyword parameters of the stage function; recorded in the store.
+    chunks : mapping, optional
+        Chunk sizes over ``y``/``x`` of the output store.
+    scheduler, threads
+        See :func:`dask_scheduler`.
+    log_path : path-like, optional
+        The job's log file.
+    """
+    params = dict(params or {})
+    with logging_to(log_path), dask_scheduler(scheduler, threads):
+        start = time.perf_counter()
+        inputs = {name: open_store(path) for name, path in stores.items()}
+        log.info("%s: inputs %s, parameters %s", stage, {k: str(v) for k, v in stores.items()}, params)
+        ds = STAGES[stage](**inputs, **params)
+        ds.attrs = {
+            **ds.attrs,
+            **provenance(stage, params, {name: str(path) for name, path in stores.items()}),
+        }
+        path = _timed_write(ds, output, chunks)
+        log.info("%s done in %.2f s", stage, time.perf_counter() - start)
         return path
+
+
+def run_calibration(
+    campaign: str | os.PathLike,
+    output: str | os.PathLike,
+    *,
+    params: Mapping | None = None,
+    log_path: str | os.PathLike | None = None,
+) -> Path:
+    """Fit the camera's radiometric calibration from a campaign's wall and panel views."""
+    from surffin.calibration import calibrate
+    from surffin.campaign import read_campaign
+
+    params = dict(params or {})
+    with logging_to(log_path):
+        ds = calibrate(read_campaign(campaign), **params)
+        return _timed_write(ds, output, None)
+
+
+def check_calibration(path: str | os.PathLike, campaign) -> None:
+    """Check that a calibration store made by another campaign fits this campaign's camera.
+
+    Raises
+    ------
+    StoreError
+        The store is not a calibration, or its sensor grid is not this camera's
+        (width x height), so it cannot cover the crop.
+    """
+    ds = open_store(path, stage="calibration")
+    camera = campaign.camera
+    grid = (ds.sizes.get("y"), ds.sizes.get("x"))
+    if grid != (camera.height, camera.width):
+        raise StoreError(
+            f"{path}: calibration of a {grid[1]}x{grid[0]} sensor, but {campaign.path} describes a "
+            f"{camera.width}x{camera.height} camera; use a calibration of the same camera"
+        )
+    rows, cols = campaign.crop.slices
+    if not bool(ds["coef"].isel(y=rows, x=cols).notnull().any()):
+        raise StoreError(f"{path}: no calibrated pixel inside the crop {campaign.crop} of {campaign.path}")
+
+
+def run_training(
+    output: str | os.PathLike,
+    *,
+    specimens: Mapping[str, Mapping],
+    extra: tuple[str, ...] = (),
+    log_path: str | os.PathLike | None = None,
+) -> Path:
+    """Pool the specimens' features (and other campaigns' training sets) into ``training.zarr``.
+
+    Parameters
+    ----------
+    specimens : mapping
+        Item name -> ``{"store": features store, "class": name, "roi": {"y", "x"} or None}``.
+    extra : tuple of path-like
+        Training stores of other campaigns to add.
+    """
+    from surffin.classify import combine_training, training_set
+
+    with logging_to(log_path):
+        items = {
+            name: (open_store(spec["store"]).compute(), spec["class"], stages.as_roi(spec["roi"]))
+            for name, spec in specimens.items()
+        }
+        ds = training_set(items)
+        if extra:
+            ds = combine_training(ds, *(open_store(path).compute() for path in extra))
+        log.info("training set: %d samples of classes %s", ds.sizes["sample"], ds.attrs["classes"])
+        ds.attrs = {**ds.attrs, **provenance("training", {"extra": list(extra)}, {n: str(s["store"]) for n, s in specimens.items()})}
+        return _timed_write(ds, output, {"sample": 1 << 20})
+
+
+def _feature_statistics(ds) -> dict:
+    """Mean, standard deviation, median and pixel count of each feature."""
+    stats = {}
+    for name in ("R0", "n", "variability"):
+        values = ds[name].values
+        finite = values[np.isfinite(values)]
+        stats[name] = {"n_pixels": int(finite.size)}
+        if finite.size:
+            stats[name].update(mean=float(finite.mean()), std=float(finite.std()), median=float(np.median(finite)))
+    return stats
+
+
+def run_summary(
+    output: str | os.PathLike,
+    *,
+    features: Mapping[str, str | os.PathLike],
+    labels: Mapping[str, str | os.PathLike],
+    truth: Mapping[str, Mapping],
+    log_path: str | os.PathLike | None = None,
+) -> Path:
+    """Write ``summary.json``: per-item feature statistics, per-scene class fractions and accuracy.
+
+    Parameters
+    ----------
+    features : mapping
+        Item name -> features store.
+    labels : mapping
+        Scene name -> labels store.
+    truth : mapping
+        Scene name -> ``{"path": truth.npz, "width": int, "height": int}`` for scenes with truth.
+    """
+    from surffin.campaign import read_truth
+    from surffin.classify import class_fractions, score
+    from surffin.viewfile import write_atomically
+
+    with logging_to(log_path):
+        summary = {"items": {}, "scenes": {}}
+        for name, path in features.items():
+            summary["items"][name] = _feature_statistics(open_store(path, stage="features").compute())
+        for name, path in labels.items():
+            ds = open_store(path, stage="labels").compute()
+            classes = ds["label"].attrs["flag_meanings"].split()
+            scene = {"class_fractions": {v: class_fractions(ds[v], classes) for v in ("label", "label_filtered")}}
+            if name in truth:
+                spec = truth[name]
+                truth_label, truth_classes = read_truth(spec["path"], width=spec["width"], height=spec["height"])
+                scene["accuracy"] = {v: score(ds[v], truth_label, truth_classes, classes) for v in ("label", "label_filtered")}
+                log.info("%s: accuracy %s", name, {v: s["accuracy"] for v, s in scene["accuracy"].items()})
+            summary["scenes"][name] = scene
+        output = Path(output)
+        output.parent.mkdir(parents=True, exist_ok=True)
+        write_atomically(output, (json.dumps(summary, indent=2) + "\n").encode())
+        return output

@@ -1,6 +1,8 @@
-"""Snakemake on a tiny synthetic campaign, in a temporary working directory."""
+"""Snakemake on a tiny synthetic campaign, in temporary working directories."""
 
+import json
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -8,61 +10,138 @@ from pathlib import Path
 import numpy as np
 import pytest
 import xarray as xr
+import yaml
 
 import surffin
 
 REPO = Path(__file__).resolve().parents[1]
-SNAKEMAKE = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile")]
+ITEM_CHAIN = {"ingest", "aoi", "reflectance", "registration", "features"}
 
 
-def snakemake(workdir, *args, config=()):
-    cmd = [*SNAKEMAKE, "--directory", str(workdir), "--cores", "2", *args]
-    settings = [f"campaign={workdir / 'raw'}", f"processed={workdir / 'processed'}", f"logs={workdir / 'logs'}", *config]
-    cmd += ["--config", *settings]
-    return subprocess.run(cmd, capture_output=True, text=True, cwd=workdir, timeout=300)
+def snakemake(workdir, *args, config=(), overrides=None, snakefile=REPO / "Snakefile"):
+    """Run snakemake on ``workdir/raw``; ``overrides`` is a nested config mapping given as a file."""
+    configfiles = [str(REPO / "tests" / "data" / "tiny-config.yaml")]
+    if overrides is not None:
+        extra = workdir / "overrides.yaml"
+        extra.write_text(yaml.safe_dump(overrides))
+        configfiles.append(str(extra))
+    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(snakefile), "--directory", str(workdir)]
+    cmd += ["--cores", "2", *args, "--configfiles", *configfiles, "--config"]
+    cmd += [f"campaign={workdir / 'raw'}", f"processed={workdir / 'processed'}", f"logs={workdir / 'logs'}", *config]
+    return subprocess.run(cmd, capture_output=True, text=True, cwd=workdir, timeout=600)
 
 
-def planned_jobs(workdir, *args, config=()):
+def planned_jobs(workdir, **kwargs):
     """Rule name -> job count of a dry run."""
-    run = snakemake(workdir, "--dry-run", *args, config=config)
-    assert run.returncode == 0, run.stderr + run.stdout
+    run = snakemake(workdir, "--dry-run", **kwargs)
     out = run.stdout + run.stderr
+    assert run.returncode == 0, out
     if "Nothing to be done" in out:
         return {}
     table = out.split("Job stats:", 1)[1]
     return {rule: int(count) for rule, count in re.findall(r"^(\w+)\s+(\d+)$", table, re.M) if rule != "total"}
 
 
-@pytest.fixture(scope="module")
-def done(tmp_path_factory):
-    """A complete run on the tiny preset."""
-    workdir = tmp_path_factory.mktemp("wf")
+def complete_run(workdir):
     surffin.simulate_campaign(workdir / "raw", preset="tiny", seed=0)
     run = snakemake(workdir)
-    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.returncode == 0, run.stderr[-4000:]
     return workdir
 
 
-def test_complete_run_writes_ingest_stores(done):
+@pytest.fixture(scope="module")
+def done(tmp_path_factory):
+    """A complete run on the tiny preset, shared by the read-only tests."""
+    return complete_run(tmp_path_factory.mktemp("wf"))
+
+
+@pytest.fixture
+def fresh(tmp_path):
+    """A complete run of one's own, for tests that change the campaign or config."""
+    return complete_run(tmp_path)
+
+
+def test_every_store_follows_the_contract(done):
     camp = surffin.read_campaign(done / "raw")
+    processed = done / "processed"
+    cal = xr.open_zarr(processed / "calibration.zarr")
+    assert list(cal["term"].values) == ["A", "B", "C", "D", "E"]
+    assert cal["coef"].dims == ("term", "y", "x") and cal.sizes["y"] == camp.camera.height
+    assert cal.attrs["scale_k"] > 0 and cal.attrs["reference_reflectance"] == pytest.approx(0.6)
     for name, item in camp.items.items():
-        ds = xr.open_zarr(done / "processed" / "ingest" / f"{name}.zarr")
-        assert list(ds["view"].values) == list(item.view_stems)
-        assert ds["y"].values[0] == camp.crop.y[0] and ds["x"].values[-1] == camp.crop.x[1] - 1
-        assert ds.attrs["surffin_version"] == surffin.__version__
-        assert ds["xyz"].attrs["units"] == "m"
-        assert (done / "logs" / "ingest" / f"{name}.log").is_file()
+        expected = {
+            "ingest": {"xyz", "intensity", "valid"},
+            "aoi": {"aoi", "distance"},
+            "reflectance": {"reflectance"},
+            "registered": {"reflectance", "aoi"},
+            "features": {"R0", "n", "variability"},
+        }
+        for stage, variables in expected.items():
+            ds = xr.open_zarr(processed / stage / f"{name}.zarr")
+            assert variables <= set(ds.data_vars), (stage, name)
+            assert ds.attrs["surffin_version"] == surffin.__version__
+            assert ds["y"].values[0] == camp.crop.y[0] and ds["x"].values[-1] == camp.crop.x[1] - 1
+            for var in variables:
+                assert "long_name" in ds[var].attrs, (stage, var)
+        assert list(xr.open_zarr(processed / "aoi" / f"{name}.zarr")["view"].values) == list(item.view_stems)
+        assert xr.open_zarr(processed / "aoi" / f"{name}.zarr")["aoi"].attrs["units"] == "rad"
+        assert (done / "logs" / "features" / f"{name}.log").is_file()
+    training = xr.open_zarr(processed / "training.zarr")
+    assert list(training["feature"].values) == ["R0", "n", "variability"]
+    assert set(training["class"].values) == {"S1", "S2", "S3", "S4"}
+    labels = xr.open_zarr(processed / "labels" / "T1.zarr")
+    for var in ("label", "label_filtered"):
+        assert labels[var].dtype == np.int16
+        assert labels[var].attrs["flag_values"] == [0, 1, 2, 3]
+        assert labels[var].attrs["flag_meanings"] == "S1 S2 S3 S4"
+    summary = json.loads((processed / "summary.json").read_text())
+    assert set(summary["items"]) == set(camp.items)
+    accuracy = summary["scenes"]["T1"]["accuracy"]
+    assert 0 <= accuracy["label"]["accuracy"] <= 1 and 0 <= accuracy["label_filtered"]["accuracy"] <= 1
+
+
+def test_nothing_left_after_a_complete_run(done):
     assert planned_jobs(done) == {}
 
 
-def test_replacing_one_view_reruns_only_its_item(tmp_path):
-    surffin.simulate_campaign(tmp_path / "raw", preset="tiny", seed=0)
-    assert snakemake(tmp_path).returncode == 0
-    view = surffin.read_campaign(tmp_path / "raw").specimens["S2"].views[1]
+def test_smoothing_change_reruns_features_and_below_only(done):
+    jobs = planned_jobs(done, overrides={"features": {"smoothing": 5}})
+    assert jobs == {"features": 5, "training": 1, "labels": 1, "summary": 1, "all": 1}
+
+
+def test_aoi_window_change_reruns_from_aoi_down(done):
+    jobs = planned_jobs(done, overrides={"aoi": {"window": 11, "jump": 0.16}})
+    assert set(jobs) == {"aoi", "reflectance", "registration", "features", "training", "labels", "summary", "all"}
+    assert jobs["aoi"] == 5
+
+
+def test_code_version_bump_reruns_that_stage(done, tmp_path):
+    copy = tmp_path / "repo"
+    copy.mkdir()
+    for part in ("Snakefile", "workflow", "config"):
+        (shutil.copytree if (REPO / part).is_dir() else shutil.copy)(REPO / part, copy / part)
+    common = copy / "workflow" / "rules" / "common.smk"
+    common.write_text(common.read_text().replace('"labels": 1,', '"labels": 2,'))
+    assert planned_jobs(done, snakefile=copy / "Snakefile") == {"labels": 1, "summary": 1, "all": 1}
+
+
+def test_replacing_one_view_reruns_its_chain_only(fresh):
+    view = surffin.read_campaign(fresh / "raw").specimens["S2"].views[1]
     data = dict(np.load(view))
     data["intensity"] = data["intensity"] * 1.01
     np.savez(view, **data)
-    assert planned_jobs(tmp_path) == {"ingest": 1, "all": 1}
+    jobs = planned_jobs(fresh)
+    assert jobs == {**{stage: 1 for stage in ITEM_CHAIN}, "training": 1, "labels": 1, "summary": 1, "all": 1}
+
+
+def test_adding_a_specimen_runs_its_chain(fresh):
+    raw = fresh / "raw"
+    shutil.copytree(raw / "specimens" / "S1", raw / "specimens" / "S5")
+    spec = yaml.safe_load((raw / "campaign.yaml").read_text())
+    spec["specimens"]["S5"] = {**spec["specimens"]["S1"], "views": "specimens/S5"}
+    (raw / "campaign.yaml").write_text(yaml.safe_dump(spec))
+    jobs = planned_jobs(fresh)
+    assert jobs == {**{stage: 1 for stage in ITEM_CHAIN}, "training": 1, "labels": 1, "summary": 1, "all": 1}
 
 
 def test_unknown_config_key_fails_before_any_job(tmp_path):

@@ -1,3 +1,4 @@
+import math
 import re
 from pathlib import Path
 
@@ -14,11 +15,21 @@ DEFAULT_CAMPAIGN = Path(workflow.basedir, "data", "raw").resolve()
 CAMPAIGN = Path(config["campaign"])
 PROCESSED = config["processed"]
 LOGS = config["logs"]
+ENV = "../envs/surffin.yaml"
 
 # Code version of each stage: bump it when a change to surffin alters what the
-# stage writes, so that snakemake's params trigger reruns exactly that stage.
+# stage writes, so that snakemake's params trigger reruns exactly that stage
+# and what depends on it.
 STAGE_VERSION = {
     "ingest": 1,
+    "calibration": 1,
+    "aoi": 1,
+    "reflectance": 1,
+    "registration": 1,
+    "features": 1,
+    "training": 1,
+    "labels": 1,
+    "summary": 1,
 }
 
 
@@ -30,16 +41,28 @@ def load_campaign():
         print(f"surffin: rendering the default campaign (preset {preset}, seed {seed}) into {CAMPAIGN}")
         surffin.simulate_campaign(CAMPAIGN, preset=preset, seed=seed)
     try:
-        return surffin.read_campaign(CAMPAIGN, require_calibration=config["calibration_store"] is None)
+        camp = surffin.read_campaign(CAMPAIGN, require_calibration=config["calibration_store"] is None)
+        if config["calibration_store"] is not None:
+            from surffin.pipeline import check_calibration
+
+            check_calibration(config["calibration_store"], camp)
+        return camp
     except SurffinError as exc:
         raise WorkflowError(str(exc)) from None
 
 
 CAMP = load_campaign()
+CALIBRATION = config["calibration_store"] or f"{PROCESSED}/calibration.zarr"
 
 
 wildcard_constraints:
     item="|".join(re.escape(name) for name in CAMP.items),
+    scene="|".join(re.escape(name) for name in CAMP.scenes) or "(?!)",
+
+
+def roi_of(name):
+    roi = CAMP.items[name].roi
+    return None if roi is None else {"y": list(roi.y), "x": list(roi.x)}
 
 
 def item_views(wildcards):
@@ -53,11 +76,74 @@ def item_settings(wildcards):
     camera = CAMP.camera
     return {
         "crop": {"y": list(CAMP.crop.y), "x": list(CAMP.crop.x)},
-        "camera": {"width": camera.width, "height": camera.height, "units": camera.units, "abcy16": camera.abcy16},
+        "camera": {
+            "width": camera.width,
+            "height": camera.height,
+            "units": camera.units,
+            "abcy16": camera.abcy16,
+            "intrinsics": camera.intrinsics,
+        },
         "reference": item.reference,
         "class": item.cls,
     }
 
 
-def ingest_stores(wildcards):
-    return expand(f"{PROCESSED}/ingest/{{item}}.zarr", item=CAMP.items)
+def registration_params(wildcards):
+    return {"method": config["registration"]["method"], "roi": roi_of(wildcards.item)}
+
+
+def feature_params(wildcards):
+    features = config["features"]
+    return {
+        "roi": roi_of(wildcards.item),
+        "size": features["smoothing"],
+        "variability_size": features["variability_window"],
+        "min_views": features["min_views"],
+        "min_spread": math.radians(features["min_aoi_spread_deg"]),
+    }
+
+
+def calibration_views(wildcards):
+    cal = CAMP.calibration
+    return [str(path) for path in (*cal.wall, *cal.reference.views)]
+
+
+def calibration_settings(wildcards):
+    ref = CAMP.calibration.reference
+    return {"reflectance": ref.reflectance, "roi": {"y": list(ref.roi.y), "x": list(ref.roi.x)}}
+
+
+def specimen_features(wildcards):
+    return {name: f"{PROCESSED}/features/{name}.zarr" for name in CAMP.specimens}
+
+
+def specimen_settings(wildcards):
+    return {
+        name: {"store": f"{PROCESSED}/features/{name}.zarr", "class": item.cls, "roi": roi_of(name)}
+        for name, item in CAMP.specimens.items()
+    }
+
+
+def scene_truth(wildcards):
+    camera = CAMP.camera
+    return {
+        name: {"path": str(item.truth), "width": camera.width, "height": camera.height}
+        for name, item in CAMP.scenes.items()
+        if item.truth is not None
+    }
+
+
+def truth_files(wildcards):
+    return [spec["path"] for spec in scene_truth(wildcards).values()]
+
+
+def item_stores(stage):
+    return expand(f"{PROCESSED}/{stage}/{{item}}.zarr", item=CAMP.items)
+
+
+def final_outputs(wildcards):
+    return [
+        *item_stores("features"),
+        *expand(f"{PROCESSED}/labels/{{scene}}.zarr", scene=CAMP.scenes),
+        f"{PROCESSED}/summary.json",
+    ]

@@ -14,7 +14,7 @@ rule ingest:
         code=STAGE_VERSION["ingest"],
     threads: 1
     conda:
-        "../envs/surffin.yaml"
+        ENV
     resources:
         mem_mb=1000,
     script:

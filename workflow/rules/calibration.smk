@@ -1,0 +1,25 @@
+rule calibration:
+    input:
+        views=calibration_views,
+    output:
+        directory(f"{PROCESSED}/calibration.zarr"),
+    log:
+        f"{LOGS}/calibration.log",
+    benchmark:
+        f"{LOGS}/benchmarks/calibration.tsv"
+    params:
+        campaign=str(CAMPAIGN),
+        settings=calibration_settings,
+        stage_params={
+            "window": config["calibration"]["aoi_window"],
+            "jump": config["calibration"]["aoi_jump"],
+            "min_obs": config["calibration"]["min_observations"],
+        },
+        code=STAGE_VERSION["calibration"],
+    threads: 1
+    conda:
+        ENV
+    resources:
+        mem_mb=1500,
+    script:
+        "../scripts/calibration.py"

@@ -1,0 +1,75 @@
+rule training:
+    input:
+        unpack(specimen_features),
+        extra=config["extra_training"],
+    output:
+        directory(f"{PROCESSED}/training.zarr"),
+    log:
+        f"{LOGS}/training.log",
+    benchmark:
+        f"{LOGS}/benchmarks/training.tsv"
+    params:
+        specimens=specimen_settings,
+        extra=config["extra_training"],
+        code=STAGE_VERSION["training"],
+    threads: 1
+    conda:
+        ENV
+    resources:
+        mem_mb=1000,
+    script:
+        "../scripts/training.py"
+
+
+rule labels:
+    input:
+        features=f"{PROCESSED}/features/{{scene}}.zarr",
+        training=f"{PROCESSED}/training.zarr",
+    output:
+        directory(f"{PROCESSED}/labels/{{scene}}.zarr"),
+    log:
+        f"{LOGS}/labels/{{scene}}.log",
+    benchmark:
+        f"{LOGS}/benchmarks/labels/{{scene}}.tsv"
+    params:
+        stage="labels",
+        stage_params={
+            "k": config["classify"]["k"],
+            "filter_kind": config["classify"]["filter"],
+            "filter_size": config["classify"]["filter_size"],
+        },
+        chunks=config["chunks"],
+        scheduler=config["scheduler"],
+        code=STAGE_VERSION["labels"],
+    threads: 2
+    conda:
+        ENV
+    resources:
+        mem_mb=1500,
+    script:
+        "../scripts/stage.py"
+
+
+rule summary:
+    input:
+        features=item_stores("features"),
+        labels=expand(f"{PROCESSED}/labels/{{scene}}.zarr", scene=CAMP.scenes),
+        truth=truth_files,
+    output:
+        f"{PROCESSED}/summary.json",
+    log:
+        f"{LOGS}/summary.log",
+    benchmark:
+        f"{LOGS}/benchmarks/summary.tsv"
+    params:
+        features={name: f"{PROCESSED}/features/{name}.zarr" for name in CAMP.items},
+        labels={name: f"{PROCESSED}/labels/{name}.zarr" for name in CAMP.scenes},
+        truth=scene_truth,
+        code=STAGE_VERSION["summary"],
+    threads: 1
+    conda:
+        ENV
+    resources:
+        mem_mb=1000,
+    script:
+        "../scripts/summary.py"

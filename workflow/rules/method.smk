@@ -1,0 +1,100 @@
+rule aoi:
+    input:
+        ingest=f"{PROCESSED}/ingest/{{item}}.zarr",
+    output:
+        directory(f"{PROCESSED}/aoi/{{item}}.zarr"),
+    log:
+        f"{LOGS}/aoi/{{item}}.log",
+    benchmark:
+        f"{LOGS}/benchmarks/aoi/{{item}}.tsv"
+    params:
+        stage="aoi",
+        stage_params={"window": config["aoi"]["window"], "jump": config["aoi"]["jump"]},
+        chunks=config["chunks"],
+        scheduler=config["scheduler"],
+        code=STAGE_VERSION["aoi"],
+    threads: 2
+    conda:
+        ENV
+    resources:
+        mem_mb=1000,
+    script:
+        "../scripts/stage.py"
+
+
+rule reflectance:
+    input:
+        ingest=f"{PROCESSED}/ingest/{{item}}.zarr",
+        aoi=f"{PROCESSED}/aoi/{{item}}.zarr",
+        calibration=CALIBRATION,
+    output:
+        directory(f"{PROCESSED}/reflectance/{{item}}.zarr"),
+    log:
+        f"{LOGS}/reflectance/{{item}}.log",
+    benchmark:
+        f"{LOGS}/benchmarks/reflectance/{{item}}.tsv"
+    params:
+        stage="reflectance",
+        stage_params={},
+        chunks=config["chunks"],
+        scheduler=config["scheduler"],
+        code=STAGE_VERSION["reflectance"],
+    threads: 2
+    conda:
+        ENV
+    resources:
+        mem_mb=1000,
+    script:
+        "../scripts/stage.py"
+
+
+rule registration:
+    input:
+        ingest=f"{PROCESSED}/ingest/{{item}}.zarr",
+        aoi=f"{PROCESSED}/aoi/{{item}}.zarr",
+        reflectance=f"{PROCESSED}/reflectance/{{item}}.zarr",
+    output:
+        directory(f"{PROCESSED}/registered/{{item}}.zarr"),
+    log:
+        f"{LOGS}/registered/{{item}}.log",
+    benchmark:
+        f"{LOGS}/benchmarks/registered/{{item}}.tsv"
+    params:
+        stage="registration",
+        stage_params=registration_params,
+        chunks=config["chunks"],
+        scheduler=config["scheduler"],
+        code=STAGE_VERSION["registration"],
+    threads: 2
+    conda:
+        ENV
+    resources:
+        mem_mb=1000,
+    script:
+        "../scripts/stage.py"
+
+
+rule features:
+    input:
+        registered=f"{PROCESSED}/registered/{{item}}.zarr",
+        reflectance=f"{PROCESSED}/reflectance/{{item}}.zarr",
+        aoi=f"{PROCESSED}/aoi/{{item}}.zarr",
+    output:
+        directory(f"{PROCESSED}/features/{{item}}.zarr"),
+    log:
+        f"{LOGS}/features/{{item}}.log",
+    benchmark:
+        f"{LOGS}/benchmarks/features/{{item}}.tsv"
+    params:
+        stage="features",
+        stage_params=feature_params,
+        chunks=config["chunks"],
+        scheduler=config["scheduler"],
+        code=STAGE_VERSION["features"],
+    threads: 2
+    conda:
+        ENV
+    resources:
+        mem_mb=1000,
+    script:
+        "../scripts/stage.py"
