@@ -135,23 +135,31 @@ def _solve_n(r, theta, w):
     hi = _START_GRID[np.minimum(best + 1, _START_GRID.size - 1)]
     n = _START_GRID[best].copy()
     converged = np.zeros(npix, dtype=bool)
-    active = np.arange(npix)
+    # The working set shrinks to the unconverged pixels only once most have
+    # converged: gathering them costs more than iterating on a few extra ones.
+    idx = np.arange(npix)
+    ra, ta, wa, na = r, theta, w, n.copy()
+    live = np.ones(npix, dtype=bool)
     for _ in range(_MAX_ITER):
-        if active.size == 0:
+        if not live.any():
             break
-        na, la, ha = n[active], lo[active], hi[active]
-        d1, d2 = _derivatives(na, r[:, active], theta[:, active], w[:, active])
+        d1, d2 = _derivatives(na, ra, ta, wa)
         rising = d1 > 0
-        ha = np.where(rising, na, ha)
-        la = np.where(rising, la, na)
+        hi_new = np.where(rising, na, hi)
+        lo_new = np.where(rising, lo, na)
         with np.errstate(invalid="ignore", divide="ignore"):
             newton = na - d1 / d2
-        ok = (d2 > 0) & (newton >= la) & (newton <= ha)
-        done = (ok & (np.abs(newton - na) <= _TOL * na)) | (d1 == 0) | ((ha - la) <= _TOL * na)
-        n[active] = np.where(ok, newton, 0.5 * (la + ha))
-        lo[active], hi[active] = la, ha
-        converged[active[done]] = True
-        active = active[~done]
+        ok = (d2 > 0) & (newton >= lo_new) & (newton <= hi_new)
+        done = (ok & (np.abs(newton - na) <= _TOL * na)) | (d1 == 0) | ((hi_new - lo_new) <= _TOL * na)
+        na = np.where(live, np.where(ok, newton, 0.5 * (lo_new + hi_new)), na)
+        lo, hi = np.where(live, lo_new, lo), np.where(live, hi_new, hi)
+        converged[idx[live & done]] = True
+        live &= ~done
+        if live.sum() < 0.5 * live.size:
+            n[idx] = na
+            idx, ra, ta, wa = idx[live], ra[:, live], ta[:, live], wa[:, live]
+            na, lo, hi, live = na[live], lo[live], hi[live], live[live]
+    n[idx] = na
     at_bound = (n <= _START_GRID[0]) | (n >= N_MAX)
     return n, converged & ~at_bound
 
