@@ -269,7 +269,7 @@ def _feature_statistics(ds) -> dict:
 def run_summary(
     output: str | os.PathLike,
     *,
-    features: Mapping[str, str | os.PathLike],
+    features: Mapping[str, Mapping],
     labels: Mapping[str, str | os.PathLike],
     truth: Mapping[str, Mapping],
     log_path: str | os.PathLike | None = None,
@@ -279,7 +279,8 @@ def run_summary(
     Parameters
     ----------
     features : mapping
-        Item name -> features store.
+        Item name -> ``{"store": features store, "roi": {"y", "x"} or None}``; the
+        statistics cover the roi where there is one, else the whole image.
     labels : mapping
         Scene name -> labels store.
     truth : mapping
@@ -287,12 +288,19 @@ def run_summary(
     """
     from surffin.campaign import read_truth
     from surffin.classify import class_fractions, score
+    from surffin.features import select_roi
     from surffin.viewfile import write_atomically
 
     with logging_to(log_path):
         summary = {"items": {}, "scenes": {}}
-        for name, path in features.items():
-            summary["items"][name] = _feature_statistics(open_store(path, stage="features").compute())
+        for name, spec in features.items():
+            ds = open_store(spec["store"], stage="features")
+            roi = stages.as_roi(spec["roi"])
+            region = ds if roi is None else select_roi(ds, roi)
+            summary["items"][name] = {
+                "region": "roi" if roi is not None else "image",
+                **_feature_statistics(region.compute()),
+            }
         for name, path in labels.items():
             ds = open_store(path, stage="labels").compute()
             classes = ds["label"].attrs["flag_meanings"].split()

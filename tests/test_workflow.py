@@ -96,6 +96,8 @@ def test_every_store_follows_the_contract(done):
         assert labels[var].attrs["flag_meanings"] == "S1 S2 S3 S4"
     summary = json.loads((processed / "summary.json").read_text())
     assert set(summary["items"]) == set(camp.items)
+    assert summary["items"]["S1"]["region"] == "roi" and summary["items"]["T1"]["region"] == "image"
+    assert summary["items"]["S1"]["n"]["n_pixels"] <= camp.specimens["S1"].roi.shape[0] * camp.specimens["S1"].roi.shape[1]
     accuracy = summary["scenes"]["T1"]["accuracy"]
     assert 0 <= accuracy["label"]["accuracy"] <= 1 and 0 <= accuracy["label_filtered"]["accuracy"] <= 1
 

@@ -62,7 +62,7 @@ rule summary:
     benchmark:
         f"{LOGS}/benchmarks/summary.tsv"
     params:
-        features={name: f"{PROCESSED}/features/{name}.zarr" for name in CAMP.items},
+        features=summary_features,
         labels={name: f"{PROCESSED}/labels/{name}.zarr" for name in CAMP.scenes},
         truth=scene_truth,
         code=STAGE_VERSION["summary"],

@@ -29,7 +29,7 @@ STAGE_VERSION = {
     "features": 1,
     "training": 1,
     "labels": 1,
-    "summary": 1,
+    "summary": 2,
 }
 
 
@@ -131,6 +131,10 @@ def scene_truth(wildcards):
         for name, item in CAMP.scenes.items()
         if item.truth is not None
     }
+
+
+def summary_features(wildcards):
+    return {name: {"store": f"{PROCESSED}/features/{name}.zarr", "roi": roi_of(name)} for name in CAMP.items}
 
 
 def truth_files(wildcards):
