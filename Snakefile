@@ -11,9 +11,14 @@ include: "workflow/rules/ingest.smk"
 include: "workflow/rules/calibration.smk"
 include: "workflow/rules/method.smk"
 include: "workflow/rules/classify.smk"
+include: "workflow/rules/report.smk"
 
 
 rule all:
     input:
         final_outputs,
+        rules.calibration_figures.output,
+        rules.classification_figures.output,
+        expand(rules.item_figures.output.features, item=CAMP.items),
+        expand(rules.scene_figures.output.labels, scene=CAMP.scenes),
     default_target: True

@@ -68,6 +68,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "TERMS",
+    "SAMPLE_QUANTITIES",
     "CALIBRATION_STATUS",
     "DEFAULT_MIN_OBS",
     "instrument_function",
@@ -87,6 +88,11 @@ TERMS = ("A", "B", "C", "D", "E")
 
 #: Default minimum number of wall observations of a pixel for a fit.
 DEFAULT_MIN_OBS = 12
+
+#: Quantities of the raw wall observations a calibration keeps (the ``quantity`` coordinate of
+#: ``sample_obs``, ``wall_obs`` and ``wall_image``): intensity (camera units), distance (m), AOI
+#: (rad), and the reflectance ``I / (k f)`` the fitted calibration gives them.
+SAMPLE_QUANTITIES = ("intensity", "distance", "aoi", "reflectance")
 
 #: Names of the ``status`` codes of a calibration fit (CF ``flag_meanings``): 0 the fit
 #: converged; 1 the pixel has fewer wall observations than ``min_obs``; 2 its observations do
@@ -114,6 +120,12 @@ _COST_RISE = 1e-14
 _FLOOR = 1e-24
 # Scale factor of the median absolute deviation to a normal standard deviation.
 _MAD_SIGMA = 1.4826
+# Wall observations kept by :func:`calibrate` (:class:`_WallSamples`): every view of the pixels
+# on a grid over the crop (fractions of its rows x columns), and about _WALL_SAMPLES random
+# usable pixels of the crop, spread evenly over the views.
+_SAMPLE_ROWS = (0.25, 0.75)
+_SAMPLE_COLUMNS = (1 / 6, 0.5, 5 / 6)
+_WALL_SAMPLES = 3000
 
 
 def instrument_function(coef, distance, aoi):
@@ -663,6 +675,125 @@ def calibration_diagnostics(ds: xr.Dataset) -> dict:
     }
 
 
+class _WallSamples:
+    """Raw wall observations kept while the views stream by, for the calibration's figures.
+
+    Memory is bounded whatever the number of views: every view of a few sample
+    pixels on a grid over the crop (paper Fig. 9), about ``_WALL_SAMPLES``
+    random usable pixels of the crop spread evenly over the views, and the full
+    images of one view, the most perpendicular so far (smallest median AOI over
+    the usable pixels of the crop; paper Fig. 10). :meth:`dataset` adds their
+    reflectance once the calibration is fitted.
+
+    Parameters
+    ----------
+    crop : Roi
+        The campaign's usable sensor region.
+    n_views : int
+        Wall views that will be added.
+    seed : int, optional
+        Seed of the random pixel choice.
+    """
+
+    def __init__(self, crop: Roi, n_views: int, seed: int = 0):
+        (top, bottom), (left, right) = crop.y, crop.x
+        rows = [top + int(f * (bottom - top)) for f in _SAMPLE_ROWS]
+        columns = [left + int(f * (right - left)) for f in _SAMPLE_COLUMNS]
+        self.pixels = np.array([(row, column) for row in rows for column in columns]).T
+        self.crop = crop
+        self.per_view = -(-_WALL_SAMPLES // max(1, n_views))
+        self.rng = np.random.default_rng(seed)
+        self.views: list[str] = []
+        self.probes: list[np.ndarray] = []
+        self.random: list[tuple[np.ndarray, np.ndarray]] = []
+        self.image: tuple[str, float, np.ndarray] | None = None
+
+    def add(self, view: Observation, stem: str) -> None:
+        """Keep what is needed of one wall view (unusable observations are NaN)."""
+        shape = np.shape(view.aoi)
+        intensity, distance, aoi, ok = _usable(view.intensity, view.distance, view.aoi, view.valid)
+        values = np.where(ok, np.stack([intensity, distance, aoi]), np.nan)
+        inside = np.zeros(shape, dtype=bool)
+        inside[self.crop.slices] = True
+        candidates = np.flatnonzero(ok & inside.ravel())
+        chosen = np.sort(self.rng.choice(candidates, min(self.per_view, candidates.size), replace=False))
+        self.views.append(stem)
+        self.probes.append(values[:, np.ravel_multi_index(self.pixels, shape)].T)
+        self.random.append((chosen, values[:, chosen]))
+        median = float(np.median(aoi[candidates])) if candidates.size else np.inf
+        if self.image is None or median < self.image[1]:
+            self.image = (stem, median, values.reshape(3, *shape))
+
+    def dataset(self, coef: np.ndarray, scale_k: float) -> xr.Dataset:
+        """The kept observations with their reflectance under the fitted calibration.
+
+        Parameters
+        ----------
+        coef : (5, H, W) ndarray of float64
+            The fitted coefficients on the sensor grid.
+        scale_k : float
+
+        Returns
+        -------
+        Dataset
+            ``sample_obs (sample_pixel, view, quantity)`` with coordinates
+            ``sample_y``, ``sample_x`` (sample_pixel) and ``view`` (wall view
+            stems); ``wall_obs (wall_sample, quantity)`` with coordinates
+            ``wall_y``, ``wall_x``, ``wall_view`` (wall_sample); ``wall_image
+            (quantity, y, x)`` of one view (attr ``view``); ``quantity`` =
+            :data:`SAMPLE_QUANTITIES`.
+        """
+        width = coef.shape[2]
+        probes = np.stack(self.probes, axis=1)
+        rows, columns = self.pixels
+        chosen = np.concatenate([index for index, _ in self.random])
+        random = np.concatenate([values for _, values in self.random], axis=1)
+        wall_y, wall_x = np.divmod(chosen, width)
+        stem, _, image = self.image
+        units = {"units": "intensity: 1, distance: m, aoi: rad, reflectance: 1"}
+        return xr.Dataset(
+            {
+                "sample_obs": (
+                    ("sample_pixel", "view", "quantity"),
+                    _with_reflectance(probes, coef[:, rows, columns][:, :, None], scale_k, axis=-1),
+                    {**units, "long_name": "wall observations of the sample pixels in every wall view"},
+                ),
+                "wall_obs": (
+                    ("wall_sample", "quantity"),
+                    _with_reflectance(random, coef[:, wall_y, wall_x], scale_k, axis=0).T,
+                    {**units, "long_name": "wall observations at random pixels of the crop"},
+                ),
+                "wall_image": (
+                    ("quantity", "y", "x"),
+                    _with_reflectance(image, coef, scale_k, axis=0).astype(np.float32),
+                    {**units, "long_name": "the most perpendicular wall view", "view": stem},
+                ),
+            },
+            coords={
+                "quantity": list(SAMPLE_QUANTITIES),
+                "view": self.views,
+                "sample_y": ("sample_pixel", rows, {"long_name": "sensor row"}),
+                "sample_x": ("sample_pixel", columns, {"long_name": "sensor column"}),
+                "wall_y": ("wall_sample", wall_y, {"long_name": "sensor row"}),
+                "wall_x": ("wall_sample", wall_x, {"long_name": "sensor column"}),
+                "wall_view": ("wall_sample", np.repeat(self.views, [index.size for index, _ in self.random])),
+            },
+        )
+
+
+def _with_reflectance(values: np.ndarray, coef: np.ndarray, scale_k: float, axis: int) -> np.ndarray:
+    """Observations (intensity, distance, aoi along ``axis``) with their reflectance ``I / (k f)`` appended.
+
+    ``coef`` (5, ...) broadcasts against the observations without ``axis``; the
+    reflectance is NaN where ``f <= 0`` or an input is NaN.
+    """
+    intensity, distance, aoi = np.moveaxis(values, axis, 0)
+    f = instrument_function(coef, distance, aoi)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        reflectance = np.where(f > 0, intensity / (scale_k * f), np.nan)
+    return np.concatenate([values, np.expand_dims(reflectance, axis)], axis=axis)
+
+
 def _observe(campaign: Campaign, path: os.PathLike, window: int, jump: float) -> Observation:
     """Read one view and compute its AOI and distance on the full sensor."""
     view = campaign.read_view(path)
@@ -704,8 +835,13 @@ def calibrate(
     Returns
     -------
     Dataset
-        :func:`fit_calibration`'s variables on the full sensor grid; attrs
-        ``scale_k``, ``reference_reflectance``, ``reference`` (details of
+        :func:`fit_calibration`'s variables on the full sensor grid; a few
+        raw wall observations with their reflectance, for figures and checks:
+        ``sample_obs`` (every view of six pixels spread over the crop),
+        ``wall_obs`` (about 3000 random pixels of the crop over all views) and
+        ``wall_image`` (the most perpendicular view), along ``quantity`` =
+        :data:`SAMPLE_QUANTITIES`; attrs ``scale_k``,
+        ``reference_reflectance``, ``reference`` (details of
         :func:`reference_scale`), ``diagnostics``
         (:func:`calibration_diagnostics`), ``campaign`` and provenance.
 
@@ -742,9 +878,11 @@ def calibrate(
             log.info("calibration: %d/%d views (%s)", done, total, path.name)
 
     stats = WallStatistics((campaign.camera.height, campaign.camera.width))
+    samples = _WallSamples(campaign.crop, len(wall))
     for path in wall:
         view = _observe(campaign, path, window, jump)
         stats.add(view.intensity, view.distance, view.aoi, view.valid)
+        samples.add(view, path.stem)
         advance(path)
     ds = fit_calibration(stats, min_obs=min_obs)
     try:
@@ -771,7 +909,7 @@ def calibrate(
     )
     parameters = {"window": window, "jump": jump, "min_obs": min_obs, "exclude": sorted(excluded)}
     inputs = {str(path.relative_to(campaign.root)): describe_file(path) for path in (*wall, *reference.views)}
-    return ds.assign_attrs(
+    return ds.merge(samples.dataset(ds["coef"].values, scale_k)).assign_attrs(
         scale_k=scale_k,
         reference_reflectance=reference.reflectance,
         reference=details,

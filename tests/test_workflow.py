@@ -15,7 +15,8 @@ import yaml
 import surffin
 
 REPO = Path(__file__).resolve().parents[1]
-ITEM_CHAIN = {"ingest", "aoi", "reflectance", "registration", "features"}
+ITEM_CHAIN = {"ingest", "aoi", "reflectance", "registration", "features", "item_figures"}
+DOWNSTREAM = {"training": 1, "labels": 1, "summary": 1, "classification_figures": 1, "scene_figures": 1, "all": 1}
 
 
 def snakemake(workdir, *args, config=(), overrides=None, snakefile=REPO / "Snakefile"):
@@ -108,12 +109,14 @@ def test_nothing_left_after_a_complete_run(done):
 
 def test_smoothing_change_reruns_features_and_below_only(done):
     jobs = planned_jobs(done, overrides={"features": {"smoothing": 5}})
-    assert jobs == {"features": 5, "training": 1, "labels": 1, "summary": 1, "all": 1}
+    figures = {"item_figures": 5, "classification_figures": 1, "scene_figures": 1}
+    assert jobs == {"features": 5, "training": 1, "labels": 1, "summary": 1, "all": 1, **figures}
 
 
 def test_aoi_window_change_reruns_from_aoi_down(done):
     jobs = planned_jobs(done, overrides={"aoi": {"window": 11, "jump": 0.16}})
-    assert set(jobs) == {"aoi", "reflectance", "registration", "features", "training", "labels", "summary", "all"}
+    downstream = {"aoi", "reflectance", "registration", "features", "training", "labels", "summary", "all"}
+    assert set(jobs) == downstream | {"item_figures", "classification_figures", "scene_figures"}
     assert jobs["aoi"] == 5
 
 
@@ -124,7 +127,8 @@ def test_code_version_bump_reruns_that_stage(done, tmp_path):
         (shutil.copytree if (REPO / part).is_dir() else shutil.copy)(REPO / part, copy / part)
     common = copy / "workflow" / "rules" / "common.smk"
     common.write_text(common.read_text().replace('"labels": 1,', '"labels": 2,'))
-    assert planned_jobs(done, snakefile=copy / "Snakefile") == {"labels": 1, "summary": 1, "all": 1}
+    jobs = planned_jobs(done, snakefile=copy / "Snakefile")
+    assert jobs == {"labels": 1, "summary": 1, "classification_figures": 1, "scene_figures": 1, "all": 1}
 
 
 def test_replacing_one_view_reruns_its_chain_only(fresh):
@@ -133,7 +137,7 @@ def test_replacing_one_view_reruns_its_chain_only(fresh):
     data["intensity"] = data["intensity"] * 1.01
     np.savez(view, **data)
     jobs = planned_jobs(fresh)
-    assert jobs == {**{stage: 1 for stage in ITEM_CHAIN}, "training": 1, "labels": 1, "summary": 1, "all": 1}
+    assert jobs == {**{stage: 1 for stage in ITEM_CHAIN}, **DOWNSTREAM}
 
 
 def test_adding_a_specimen_runs_its_chain(fresh):
@@ -143,7 +147,7 @@ def test_adding_a_specimen_runs_its_chain(fresh):
     spec["specimens"]["S5"] = {**spec["specimens"]["S1"], "views": "specimens/S5"}
     (raw / "campaign.yaml").write_text(yaml.safe_dump(spec))
     jobs = planned_jobs(fresh)
-    assert jobs == {**{stage: 1 for stage in ITEM_CHAIN}, "training": 1, "labels": 1, "summary": 1, "all": 1}
+    assert jobs == {**{stage: 1 for stage in ITEM_CHAIN}, **DOWNSTREAM}
 
 
 def test_unknown_config_key_fails_before_any_job(tmp_path):

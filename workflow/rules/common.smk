@@ -22,7 +22,7 @@ ENV = "../envs/surffin.yaml"
 # and what depends on it.
 STAGE_VERSION = {
     "ingest": 1,
-    "calibration": 1,
+    "calibration": 2,
     "aoi": 1,
     "reflectance": 1,
     "registration": 1,
@@ -30,6 +30,7 @@ STAGE_VERSION = {
     "training": 1,
     "labels": 1,
     "summary": 2,
+    "figures": 1,
 }
 
 
@@ -86,6 +87,10 @@ def item_settings(wildcards):
         "reference": item.reference,
         "class": item.cls,
     }
+
+
+def item_roi(wildcards):
+    return roi_of(wildcards.item)
 
 
 def registration_params(wildcards):

@@ -1,0 +1,746 @@
+"""Figures and tables of a processed campaign, after the paper's.
+
+One function per figure, each taking opened stores (Datasets) or dicts and
+writing one image file (PNG unless the path names another format that
+matplotlib writes):
+
+| function | paper | from |
+| --- | --- | --- |
+| :func:`plot_calibration_fit` | Fig. 9 | calibration ``sample_obs``, ``coef`` |
+| :func:`plot_r2_map` | section 3.3 | calibration ``r2``, ``status`` |
+| :func:`parameter_table` | Table 2 | calibration diagnostics |
+| :func:`plot_wall_reflectance` | Fig. 10 | calibration ``wall_image``, ``wall_obs`` |
+| :func:`plot_features` | Fig. 13 | an item's features and registered stores |
+| :func:`plot_feature_space` | Fig. 14 | the training set |
+| :func:`plot_labels` | Fig. 15 | a scene's labels and ingest stores |
+| :func:`accuracy_table` | section 5.2 | ``summary.json`` |
+
+Tables are pandas DataFrames; :func:`write_table` writes one as HTML or CSV.
+:func:`run_figures` opens the stores and writes the files a workflow rule asks
+for. Figures are drawn on :class:`matplotlib.figure.Figure` objects, never
+through pyplot: no global figure registry and no display, so they render with
+the Agg canvas from any thread or job. Matplotlib is imported only when a
+figure is drawn.
+
+Class colours are the same in every figure: the i-th class of the sorted class
+list (the label order of :mod:`surffin.classify`) takes the i-th colour of
+matplotlib's ``tab10`` cycle.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import logging
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from surffin.calibration import TERMS, calibration_diagnostics, instrument_function
+from surffin.campaign import Roi
+from surffin.classify import FEATURES, UNCLASSIFIED
+from surffin.features import select_roi, smooth
+from surffin.scattering import scattering_model
+
+__all__ = [
+    "DPI",
+    "PAPER_VARIABILITY",
+    "FIGURE_KINDS",
+    "plot_calibration_fit",
+    "plot_r2_map",
+    "parameter_table",
+    "plot_wall_reflectance",
+    "plot_features",
+    "plot_feature_space",
+    "plot_labels",
+    "accuracy_table",
+    "write_table",
+    "run_figures",
+]
+
+log = logging.getLogger("surffin")
+
+#: Resolution of the written images, dots per inch.
+DPI = 120
+#: The paper's variability (%) of each calibration coefficient across the image (section 3.3).
+PAPER_VARIABILITY = {"A": 8.94, "B": 3.92, "C": 1.79, "D": 1.38, "E": 4.44}
+#: What :func:`run_figures` can write: output kind -> the inputs it needs.
+FIGURE_KINDS = {
+    "calibration_fit": ("calibration",),
+    "calibration_r2": ("calibration",),
+    "calibration_table": ("calibration",),
+    "wall_reflectance": ("calibration",),
+    "feature_space": ("training",),
+    "accuracy_table": ("summary",),
+    "features": ("features", "registered"),
+    "labels": ("labels", "ingest"),
+}
+
+# Most points drawn per scatter (per class in the feature space): enough to show the
+# distribution, few enough for a light PNG.
+_MAX_POINTS = 4000
+# Opacity of the class colours over the intensity image.
+_LABEL_ALPHA = 0.6
+# Percentiles of the colour range of feature images and of the intensity background.
+_RANGE = (2, 98)
+
+
+# --- helpers ----------------------------------------------------------------------------------
+
+
+def _figure(width: float, height: float):
+    """A new matplotlib Figure of ``width`` x ``height`` inches, constrained layout."""
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=(width, height), layout="constrained")
+
+
+def _save(fig, path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=DPI)
+    return path
+
+
+def _colormap(name: str, bad: str = "0.8"):
+    """A copy of a matplotlib colormap drawing NaN (missing pixels) in ``bad``."""
+    import matplotlib
+
+    return matplotlib.colormaps[name].with_extremes(bad=bad)
+
+
+def _class_colours(classes: Sequence[str]) -> dict[str, tuple]:
+    """Class name -> RGBA, in the order of ``classes`` (the label order)."""
+    import matplotlib
+
+    cycle = matplotlib.colormaps["tab10"]
+    return {name: cycle(index % cycle.N) for index, name in enumerate(classes)}
+
+
+def _robust_range(values, percentiles=_RANGE) -> tuple[float, float] | tuple[None, None]:
+    """Colour limits from percentiles of the finite values (None, None when there are none)."""
+    finite = np.asarray(values, dtype=np.float64)
+    finite = finite[np.isfinite(finite)]
+    if finite.size == 0:
+        return None, None
+    low, high = np.percentile(finite, percentiles)
+    return float(low), float(high if high > low else low + 1e-12)
+
+
+def _extent(da: xr.DataArray) -> tuple[float, float, float, float]:
+    """imshow extent of a (y, x) image in sensor coordinates (pixel centres on integers)."""
+    x, y = da["x"].values, da["y"].values
+    return x[0] - 0.5, x[-1] + 0.5, y[-1] + 0.5, y[0] - 0.5
+
+
+def _image(ax, da: xr.DataArray, title: str, label: str, cmap: str, limits=None, *, log_scale: bool = False):
+    """Draw a (y, x) DataArray in sensor coordinates with a colour bar (logarithmic if asked and possible)."""
+    from matplotlib.colors import LogNorm, Normalize
+
+    low, high = limits if limits is not None else _robust_range(da.values)
+    norm = LogNorm(low, high) if log_scale and low is not None and low > 0 else Normalize(low, high)
+    shown = ax.imshow(
+        da.transpose("y", "x").values, cmap=_colormap(cmap), norm=norm, extent=_extent(da), interpolation="nearest"
+    )
+    ax.set_title(title)
+    ax.set_xlabel("sensor column x (px)")
+    ax.set_ylabel("sensor row y (px)")
+    ax.figure.colorbar(shown, ax=ax, label=label, shrink=0.9)
+
+
+def _roi_box(ax, roi: Roi | None) -> None:
+    """Outline a roi (sensor coordinates), dashed white."""
+    if roi is None:
+        return
+    from matplotlib.patches import Rectangle
+
+    (top, bottom), (left, right) = roi.y, roi.x
+    ax.add_patch(
+        Rectangle((left - 0.5, top - 0.5), right - left, bottom - top, fill=False, edgecolor="white", linewidth=1.2,
+                  linestyle="--")
+    )
+
+
+def _subsample(count: int, limit: int, seed: int = 0) -> np.ndarray:
+    """Sorted indices of at most ``limit`` of ``count`` items (all of them when few enough)."""
+    if count <= limit:
+        return np.arange(count)
+    return np.sort(np.random.default_rng(seed).choice(count, limit, replace=False))
+
+
+def _polar_quadrant(ax, r_max: float) -> None:
+    """A polar axis from AOI 0 (up) to 90 deg (right), radius = reflectance."""
+    ax.set_theta_zero_location("N")
+    ax.set_theta_direction(-1)
+    ax.set_thetamin(0)
+    ax.set_thetamax(90)
+    ax.set_rmax(r_max)
+    ax.set_xlabel("reflectance R (radius) at angle of incidence θ", labelpad=8)
+    ax.grid(True, alpha=0.5)
+
+
+def _message(path, title: str, text: str) -> Path:
+    """A figure that says why it has no content (e.g. an input made by an older surffin)."""
+    fig = _figure(8, 3)
+    ax = fig.add_subplot()
+    ax.axis("off")
+    ax.set_title(title)
+    ax.text(0.5, 0.5, text, ha="center", va="center", wrap=True, fontsize=11)
+    log.warning("%s: %s", title, text)
+    return _save(fig, path)
+
+
+def _calibration_samples(calibration: xr.Dataset, variable: str) -> bool:
+    return variable in calibration and "quantity" in calibration.coords
+
+
+_NO_SAMPLES = (
+    "this calibration store holds no raw wall observations ({variable}); calibrations fitted by "
+    "surffin since the report figures were added keep them: refit the calibration to draw this figure"
+)
+
+
+# --- calibration ------------------------------------------------------------------------------
+
+
+def plot_calibration_fit(calibration: xr.Dataset, path: str | os.PathLike) -> Path:
+    """Paper Fig. 9: the calibration fit of a few pixels.
+
+    The fitted instrument function is a product ``f = g(d) h(theta)`` with
+    ``g = A + B / d^2`` and ``h = C theta^2 + D theta + E`` (E = 1). Panels:
+    the Lambert-corrected intensity ``y = I / cos(theta)`` of every wall view of
+    the first sample pixel over (d, theta) with the fitted surface f (the
+    paper's figure); then, for every sample pixel, each factor against its
+    variable with the data divided by the other factor (``y / h`` against d,
+    ``y / g`` against theta), which shows both effects and how they vary
+    across the sensor.
+
+    Parameters
+    ----------
+    calibration : Dataset
+        A calibration store (``coef``, ``r2``, ``sample_obs`` with
+        ``sample_y``/``sample_x``).
+    path : path-like
+        The image to write.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    if not _calibration_samples(calibration, "sample_obs"):
+        return _message(path, "Calibration fit of sample pixels", _NO_SAMPLES.format(variable="sample_obs"))
+    obs = calibration["sample_obs"].load()
+    rows, columns = obs["sample_y"].values, obs["sample_x"].values
+    pixels = {"y": xr.DataArray(rows, dims="sample_pixel"), "x": xr.DataArray(columns, dims="sample_pixel")}
+    coef = calibration["coef"].sel(pixels).transpose("term", "sample_pixel").values
+    r2 = calibration["r2"].sel(pixels).values
+    distance = obs.sel(quantity="distance").values
+    aoi = obs.sel(quantity="aoi").values
+    corrected = obs.sel(quantity="intensity").values / np.cos(aoi)
+    ok = np.isfinite(corrected)
+    d_grid = np.linspace(np.nanmin(distance) * 0.97, np.nanmax(distance) * 1.03, 60)
+    t_grid = np.linspace(0.0, np.nanmax(aoi) * 1.03, 60)
+    fig = _figure(18.0, 5.8)
+    surface = fig.add_subplot(1, 3, 1, projection="3d")
+    surface.set_box_aspect(None, zoom=0.82)
+    first = ok[0]
+    d_mesh, t_mesh = np.meshgrid(d_grid, t_grid)
+    surface.plot_surface(d_mesh, np.degrees(t_mesh), instrument_function(coef[:, 0], d_mesh, t_mesh), cmap="viridis",
+                         alpha=0.55, linewidth=0)
+    surface.scatter(distance[0, first], np.degrees(aoi[0, first]), corrected[0, first], color="red", s=18,
+                    depthshade=False, label="wall views")
+    surface.set_xlabel("distance d (m)")
+    surface.set_ylabel("AOI θ (deg)")
+    surface.set_zlabel("I / cos θ (camera units)", labelpad=10)
+    surface.set_title(f"pixel 1 (y {rows[0]}, x {columns[0]}): data and fitted f(d, θ), R² = {float(r2[0]):.4f}",
+                      fontsize=10)
+    surface.legend(loc="upper right", fontsize=9)
+    by_distance, by_angle = fig.add_subplot(1, 3, 2), fig.add_subplot(1, 3, 3)
+    for index in range(obs.sizes["sample_pixel"]):
+        A, B, C, D, E = coef[:, index]
+        g = A + B / distance[index] ** 2
+        h = (C * aoi[index] + D) * aoi[index] + E
+        label = f"{index + 1}: (y {rows[index]}, x {columns[index]}), R² {float(r2[index]):.4f}"
+        line = by_distance.plot(d_grid, A + B / d_grid**2, linewidth=1.2, label=label)[0]
+        by_distance.scatter(distance[index], corrected[index] / h, s=10, alpha=0.6, color=line.get_color())
+        by_angle.plot(np.degrees(t_grid), (C * t_grid + D) * t_grid + E, linewidth=1.2, color=line.get_color())
+        by_angle.scatter(np.degrees(aoi[index]), corrected[index] / g, s=10, alpha=0.6, color=line.get_color())
+    by_distance.set_xlabel("distance d (m)")
+    by_distance.set_ylabel("(I / cos θ) / h(θ) (camera units)")
+    by_distance.set_title("distance factor g(d) = A + B/d² (lines) and data / h(θ)", fontsize=10)
+    by_distance.legend(title="sample pixel", fontsize=8)
+    by_angle.set_xlabel("angle of incidence θ (deg)")
+    by_angle.set_ylabel("(I / cos θ) / g(d)")
+    by_angle.set_title("angular factor h(θ) = Cθ² + Dθ + E (lines, E = 1) and data / g(d)", fontsize=10)
+    for ax in (by_distance, by_angle):
+        ax.grid(True, alpha=0.3)
+    fig.suptitle("Calibration fit (eq. 5) of sample pixels to the Lambert-corrected wall intensity I / cos θ")
+    return _save(fig, path)
+
+
+def plot_r2_map(calibration: xr.Dataset, path: str | os.PathLike) -> Path:
+    """The calibration's coefficient of determination per pixel, with the sample pixels of Fig. 9.
+
+    Parameters
+    ----------
+    calibration : Dataset
+        A calibration store (``r2``, ``status``; ``sample_y``/``sample_x`` when present).
+    path : path-like
+
+    Returns
+    -------
+    Path
+    """
+    r2 = calibration["r2"].load()
+    fitted = (calibration["status"] == 0).values
+    values = r2.values[fitted]
+    low = float(np.percentile(values, 1)) if values.size else 0.0
+    fig = _figure(8.5, 6.0)
+    ax = fig.add_subplot()
+    mean = f"{values.mean():.4f}" if values.size else "n/a"
+    _image(ax, r2, f"Calibration fit: R² per pixel (mean {mean}, paper 0.98; {values.size} of {fitted.size} "
+           "pixels fitted, grey: none)", "coefficient of determination R²", "viridis", (low, 1.0))
+    if "sample_y" in calibration.coords:
+        ys, xs = calibration["sample_y"].values, calibration["sample_x"].values
+        ax.scatter(xs, ys, marker="o", s=60, facecolors="none", edgecolors="red", linewidths=1.5)
+        for index, (y, x) in enumerate(zip(ys, xs)):
+            ax.annotate(str(index + 1), (x, y), xytext=(5, 5), textcoords="offset points", color="red",
+                        fontsize=11, fontweight="bold")
+    ax.title.set_fontsize(10)
+    return _save(fig, path)
+
+
+def parameter_table(calibration: xr.Dataset) -> pd.DataFrame:
+    """Paper Table 2: correlation of the calibration coefficients across pixels, and their variability.
+
+    Parameters
+    ----------
+    calibration : Dataset
+        A calibration store (``coef``, ``r2``, ``status``).
+
+    Returns
+    -------
+    DataFrame
+        Rows A..E: the correlation matrix (NaN for a coefficient that does not
+        vary: E in the gauge E = 1); then ``variability (%)`` (100 std / |mean|
+        across the fitted pixels) and ``paper variability (%)``
+        (:data:`PAPER_VARIABILITY`, in the paper's unstated gauge).
+    """
+    diagnostics = calibration_diagnostics(calibration[["coef", "r2", "status"]].load())
+    table = pd.DataFrame(np.nan, index=[*TERMS, "variability (%)", "paper variability (%)"], columns=list(TERMS))
+    varying = diagnostics["correlation_terms"]
+    table.loc[varying, varying] = np.asarray(diagnostics["correlation"])
+    table.loc["variability (%)"] = [diagnostics["variability_percent"][term] for term in TERMS]
+    table.loc["paper variability (%)"] = [PAPER_VARIABILITY[term] for term in TERMS]
+    table.index.name = "coefficient"
+    table.attrs = {
+        "title": "Calibration coefficients: correlation across pixels and variability (paper Table 2)",
+        "notes": [
+            f"{diagnostics['n_fitted']} of {diagnostics['n_pixels']} pixels fitted; mean R² "
+            f"{diagnostics['mean_r2']:.4f}, median {diagnostics['median_r2']:.4f} (paper: mean 0.98).",
+            "f = (A + B/d²)(C θ² + D θ + E), d in m, θ in rad, gauge E = 1: E does not vary, so its "
+            "correlations are undefined (blank) and its variability is 0.",
+        ],
+    }
+    return table
+
+
+def plot_wall_reflectance(calibration: xr.Dataset, path: str | os.PathLike) -> Path:
+    """Paper Fig. 10: the calibrated reflectance of the wall against the ideal Lambertian scatterer.
+
+    Left: the deviation of the reflectance of the most perpendicular wall view
+    from ``rho_wall cos(theta)`` per pixel, with ``rho_wall = 1 / scale_k`` (the
+    wall's reflectance in the calibration's gauge): what the calibration
+    leaves uncompensated; below it, the same smoothed with a Gaussian window
+    of about 1/20 of the image, which averages the noise and leaves the
+    residual systematics. Right: reflectance against AOI of random wall pixels
+    of all views, on a polar plot, with ``rho_wall cos(theta)`` in red.
+
+    Parameters
+    ----------
+    calibration : Dataset
+        A calibration store (``wall_image``, ``wall_obs``, attr ``scale_k``).
+    path : path-like
+
+    Returns
+    -------
+    Path
+    """
+    if not (_calibration_samples(calibration, "wall_obs") and "wall_image" in calibration):
+        return _message(path, "Reflectance of the calibration wall", _NO_SAMPLES.format(variable="wall_obs"))
+    rho = 1.0 / float(calibration.attrs["scale_k"])
+    image = calibration["wall_image"].astype(np.float64).load()
+    deviation = 100.0 * (image.sel(quantity="reflectance") / (rho * np.cos(image.sel(quantity="aoi"))) - 1.0)
+    size = 2 * (min(deviation.shape) // 40) + 1
+    fig = _figure(15.0, 9.0)
+    grid = fig.add_gridspec(2, 2, width_ratios=(1.0, 0.9))
+    view = image.attrs.get("view", "")
+    for row, (shown, title) in enumerate(
+        (
+            (deviation, f"wall view {view}: deviation from Lambertian, R / (ρ_wall cos θ) − 1"),
+            (smooth(deviation, size), f"the same, Gaussian-smoothed {size}x{size} px: residual systematics"),
+        )
+    ):
+        low, high = _robust_range(shown.values, (1, 99))
+        limit = max(abs(low or 0.0), abs(high or 0.0)) or 1.0
+        _image(fig.add_subplot(grid[row, 0]), shown, title, "deviation (%)", "RdBu_r", (-limit, limit))
+    obs = calibration["wall_obs"].load()
+    aoi, reflectance = obs.sel(quantity="aoi").values, obs.sel(quantity="reflectance").values
+    ok = np.isfinite(aoi) & np.isfinite(reflectance)
+    chosen = np.flatnonzero(ok)[_subsample(int(ok.sum()), _MAX_POINTS)]
+    polar = fig.add_subplot(grid[:, 1], projection="polar")
+    polar.scatter(aoi[chosen], reflectance[chosen], s=4, alpha=0.35, color="tab:blue",
+                  label=f"wall pixels ({chosen.size} of {obs.sizes['wall_sample']} samples, "
+                  f"{np.unique(obs['wall_view'].values).size} views)")
+    theta = np.radians(np.linspace(0.0, 90.0, 181))
+    polar.plot(theta, rho * np.cos(theta), color="red", linewidth=2,
+               label=f"ideal Lambertian ρ_wall cos θ, ρ_wall = 1/k = {rho:.3f}")
+    top = max(rho, float(np.percentile(reflectance[chosen], 99.5)) if chosen.size else rho)
+    _polar_quadrant(polar, 1.1 * top)
+    polar.set_title("reflectance vs angle of incidence θ (deg) of the calibration wall")
+    polar.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), fontsize=9, markerscale=4)
+    fig.suptitle("Calibrated reflectance of the calibration wall against an ideal Lambertian surface")
+    return _save(fig, path)
+
+
+# --- items and the training set ----------------------------------------------------------------
+
+
+def plot_features(
+    features: xr.Dataset, registered: xr.Dataset, path: str | os.PathLike, *, roi: Roi | None = None
+) -> Path:
+    """Paper Fig. 13: an item's feature images and the reflectance samples they come from.
+
+    Panels: R0, n and variability on the item's reference grid (sensor
+    coordinates, the roi dashed), and the registered reflectance of all views
+    against their AOI on a polar plot (pixels of the roi, or of the whole image),
+    with the scattering model (eq. 3) at the median R0 and n.
+
+    Parameters
+    ----------
+    features : Dataset (y, x)
+        A features store (``R0``, ``n``, ``variability``; attrs ``item``, ``kind``, ``class``).
+    registered : Dataset (view, y, x)
+        The item's registered store (``reflectance``, ``aoi``).
+    path : path-like
+    roi : Roi, optional
+        The item's pixels (a specimen's roi).
+
+    Returns
+    -------
+    Path
+    """
+    features = features[list(FEATURES)].load()
+    region = features if roi is None else select_roi(features, roi)
+    fig = _figure(13.0, 9.5)
+    axes = fig.subplots(2, 2)
+    panels = (
+        ("R0", "R0: reflectance at normal incidence", "viridis", _RANGE, False),
+        ("n", "n: scattering coefficient", "cividis", _RANGE, False),
+        ("variability", "spatial reflectance variability (log scale)", "inferno", (2, 99.5), True),
+    )
+    for ax, (name, title, cmap, percentiles, log_scale) in zip(axes.ravel(), panels):
+        limits = _robust_range(region[name].values, percentiles)
+        _image(ax, features[name], title, f"{name} (1)", cmap, limits, log_scale=log_scale)
+        _roi_box(ax, roi)
+    ax = axes[1, 1]
+    ax.remove()
+    polar = fig.add_subplot(2, 2, 4, projection="polar")
+    both = registered[["reflectance", "aoi"]]
+    both = (both if roi is None else select_roi(both, roi)).load()
+    r_max = 0.0
+    for index, view in enumerate(both["view"].values):
+        aoi = both["aoi"].sel(view=view).values.ravel()
+        reflectance = both["reflectance"].sel(view=view).values.ravel()
+        ok = np.flatnonzero(np.isfinite(aoi) & np.isfinite(reflectance))
+        chosen = ok[_subsample(ok.size, _MAX_POINTS // both.sizes["view"], seed=index)]
+        polar.scatter(aoi[chosen], reflectance[chosen], s=3, alpha=0.3, label=f"view {view}")
+        if chosen.size:
+            r_max = max(r_max, float(np.percentile(reflectance[chosen], 99.5)))
+    r0, n = (float(np.nanmedian(region[name].values)) for name in ("R0", "n"))
+    if np.isfinite(r0) and np.isfinite(n):
+        theta = np.radians(np.linspace(0.0, 90.0, 181))
+        polar.plot(theta, scattering_model(theta, r0, n), color="black", linewidth=2,
+                   label=f"model at median R0 = {r0:.3f}, n = {n:.3f}")
+        r_max = max(r_max, r0)
+    _polar_quadrant(polar, 1.1 * r_max if r_max > 0 else 1.0)
+    polar.set_title("registered reflectance vs angle of incidence θ (deg)")
+    polar.legend(loc="lower left", bbox_to_anchor=(-0.1, -0.32), fontsize=8, markerscale=4, ncol=2)
+    attrs = features.attrs
+    what = f"specimen of class {attrs['class']}" if attrs.get("kind") == "specimen" else attrs.get("kind", "item")
+    fig.suptitle(f"{attrs.get('item', '')} ({what}): features, smoothed {attrs.get('smoothing_size', '?')} px")
+    return _save(fig, path)
+
+
+def plot_feature_space(training: xr.Dataset, path: str | os.PathLike) -> Path:
+    """Paper Fig. 14: the training samples in feature space, coloured by class.
+
+    Three panels: R0 against n (the paper's middle panel), and each against
+    the variability (its right panel, as two projections). At most a few
+    thousand samples per class are drawn; class medians are marked.
+
+    Parameters
+    ----------
+    training : Dataset
+        A training store (``features (sample, feature)``, ``class (sample)``, attr ``classes``).
+    path : path-like
+
+    Returns
+    -------
+    Path
+    """
+    training = training[["features", "class"]].load()
+    classes = list(training.attrs.get("classes") or sorted(set(training["class"].values.tolist())))
+    colours = _class_colours(classes)
+    values = training["features"].transpose("sample", "feature").values
+    column = {name: index for index, name in enumerate(training["feature"].values.tolist())}
+    labels = np.asarray(training["class"].values.tolist())
+    pairs = (("n", "R0"), ("variability", "R0"), ("variability", "n"))
+    names = {"R0": "R0 (reflectance at normal incidence)", "n": "n (scattering coefficient)",
+             "variability": "spatial reflectance variability"}
+    fig = _figure(16.0, 5.4)
+    axes = fig.subplots(1, 3)
+    for seed, name in enumerate(classes):
+        members = np.flatnonzero(labels == name)
+        chosen = members[_subsample(members.size, _MAX_POINTS, seed=seed)]
+        for ax, (x_name, y_name) in zip(axes, pairs):
+            x, y = values[chosen, column[x_name]], values[chosen, column[y_name]]
+            ax.scatter(x, y, s=3, alpha=0.25, color=colours[name], rasterized=True)
+            ax.scatter(np.median(values[members, column[x_name]]), np.median(values[members, column[y_name]]),
+                       s=120, marker="X", color=colours[name], edgecolors="black", linewidths=1.0,
+                       label=f"{name} ({members.size} px)")
+    for ax, (x_name, y_name) in zip(axes, pairs):
+        ax.set_xlabel(names[x_name])
+        ax.set_ylabel(names[y_name])
+        ax.grid(True, alpha=0.3)
+    axes[0].legend(title="class (median ✕)", fontsize=9)
+    fig.suptitle(f"Feature space of the training specimens ({', '.join(training.attrs.get('items', []))})")
+    return _save(fig, path)
+
+
+# --- scenes ------------------------------------------------------------------------------------
+
+
+def _intensity_background(ingest: xr.Dataset, grid: xr.DataArray) -> tuple[xr.DataArray, str]:
+    """The reference view's intensity on the pixels of ``grid``, NaN where invalid, and the view's stem."""
+    view = ingest.attrs.get("reference_view", ingest["view"].values[0])
+    intensity = ingest["intensity"].sel(view=view)
+    if "valid" in ingest:
+        intensity = intensity.where(ingest["valid"].sel(view=view))
+    return intensity.sel(y=grid["y"], x=grid["x"]).astype(np.float64).load(), str(view)
+
+
+def plot_labels(
+    labels: xr.Dataset, ingest: xr.Dataset, path: str | os.PathLike, *, scores: Mapping | None = None
+) -> Path:
+    """Paper Fig. 15: a scene's class labels over its intensity image, before and after filtering.
+
+    Parameters
+    ----------
+    labels : Dataset (y, x)
+        A labels store (``label``, ``label_filtered`` with CF ``flag_meanings``).
+    ingest : Dataset (view, y, x)
+        The scene's ingest store: the reference view's intensity is the background.
+    path : path-like
+    scores : mapping, optional
+        The scene's entry of ``summary.json`` (``accuracy`` per variable), shown in the titles.
+
+    Returns
+    -------
+    Path
+    """
+    from matplotlib.patches import Patch
+
+    labels = labels[["label", "label_filtered"]].load()
+    classes = labels["label"].attrs["flag_meanings"].split()
+    colours = _class_colours(classes)
+    background, view = _intensity_background(ingest, labels["label"])
+    low, high = _robust_range(background.values, (1, 99))
+    accuracy = (scores or {}).get("accuracy", {})
+    filtered = labels["label_filtered"].attrs
+    size = filtered.get("filter_size", "?")
+    titles = {
+        "label": "k-NN labels",
+        "label_filtered": f"after the {filtered.get('filter', '')} filter ({size}x{size} px)",
+    }
+    fig = _figure(14.0, 4.6)
+    axes = fig.subplots(1, 2)
+    for ax, variable in zip(axes, ("label", "label_filtered")):
+        label = labels[variable]
+        ax.imshow(background.values, cmap=_colormap("gray", bad="black"), vmin=low, vmax=high,
+                  extent=_extent(label), interpolation="nearest")
+        overlay = np.zeros((*label.shape, 4))
+        for index, name in enumerate(classes):
+            overlay[label.values == index] = (*colours[name][:3], _LABEL_ALPHA)
+        ax.imshow(overlay, extent=_extent(label), interpolation="nearest")
+        title = titles[variable]
+        if variable in accuracy:
+            title += f": accuracy {100 * accuracy[variable]['accuracy']:.1f} % of {accuracy[variable]['n_scored']} px"
+        ax.set_title(title)
+        ax.set_xlabel("sensor column x (px)")
+        ax.set_ylabel("sensor row y (px)")
+    handles = [Patch(facecolor=colours[name], alpha=_LABEL_ALPHA, label=name) for name in classes]
+    handles.append(Patch(facecolor="none", edgecolor="0.5", label=f"unclassified ({UNCLASSIFIED}): no colour"))
+    fig.legend(handles=handles, loc="outside right center", title="class")
+    fig.suptitle(f"Scene {labels.attrs.get('item', '')}: class labels over the intensity of view {view}")
+    return _save(fig, path)
+
+
+def accuracy_table(summary: Mapping) -> pd.DataFrame:
+    """Per scene and label variant: accuracy against the truth and the share of each class.
+
+    Parameters
+    ----------
+    summary : mapping
+        The content of ``summary.json``.
+
+    Returns
+    -------
+    DataFrame
+        Index (scene, labels) with labels ``label`` / ``label_filtered``;
+        columns ``accuracy (%)`` and ``scored pixels`` (NaN without truth),
+        ``<class> (%)`` for every class, ``unclassified (%)``, ``pixels``.
+    """
+    rows, classes = {}, []
+    for scene, entry in summary.get("scenes", {}).items():
+        for variable, fractions in entry["class_fractions"].items():
+            score = entry.get("accuracy", {}).get(variable, {})
+            classes += [name for name in fractions["fractions"] if name not in classes]
+            rows[(scene, variable)] = {
+                "accuracy (%)": 100.0 * score["accuracy"] if score else np.nan,
+                "scored pixels": score.get("n_scored", np.nan),
+                **{f"{name} (%)": 100.0 * share for name, share in fractions["fractions"].items()},
+                "unclassified (%)": 100.0 * fractions["unclassified"],
+                "pixels": fractions["n_pixels"],
+            }
+    columns = ["accuracy (%)", "scored pixels", *(f"{name} (%)" for name in classes), "unclassified (%)", "pixels"]
+    table = pd.DataFrame.from_dict(rows, orient="index", columns=columns)
+    table.index = pd.MultiIndex.from_tuples(list(rows), names=["scene", "labels"])
+    table.attrs = {
+        "title": "Classification of the scenes: accuracy and class fractions",
+        "notes": [
+            "accuracy: share of the pixels with a truth label whose predicted class is that label "
+            "(unclassified counts as wrong); class fractions over all pixels of the scene's image.",
+        ],
+    }
+    return table
+
+
+def write_table(table: pd.DataFrame, path: str | os.PathLike) -> Path:
+    """Write a table of this module as a small HTML page (``.html``) or as CSV (any other suffix).
+
+    The HTML page carries the table's ``attrs["title"]`` and ``attrs["notes"]``.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() not in (".html", ".htm"):
+        table.to_csv(path, float_format="%.6g")
+        return path
+    title = html.escape(table.attrs.get("title", ""))
+    notes = "".join(f"<p>{html.escape(note)}</p>" for note in table.attrs.get("notes", []))
+    body = table.to_html(float_format=lambda value: f"{value:.2f}", na_rep="", border=0, classes="table")
+    style = (
+        "body{font-family:sans-serif;margin:1em}table{border-collapse:collapse}"
+        "th,td{padding:4px 10px;text-align:right;border-bottom:1px solid #ddd}th{background:#f4f4f4}"
+    )
+    page = (
+        f'<!DOCTYPE html>\n<html><head><meta charset="utf-8"><title>{title}</title><style>{style}</style></head>'
+        f"<body><h3>{title}</h3>{body}{notes}</body></html>\n"
+    )
+    path.write_text(page, encoding="utf-8")
+    return path
+
+
+# --- the workflow's entry ------------------------------------------------------------------------
+
+
+def _paths(value) -> list[str]:
+    """One path or several (a snakemake named output with a list)."""
+    return [value] if isinstance(value, str | os.PathLike) else [str(v) for v in value]
+
+
+def run_figures(
+    outputs: Mapping[str, str | os.PathLike | Sequence[str | os.PathLike]],
+    *,
+    calibration: str | os.PathLike | None = None,
+    training: str | os.PathLike | None = None,
+    summary: str | os.PathLike | None = None,
+    features: str | os.PathLike | None = None,
+    registered: str | os.PathLike | None = None,
+    labels: str | os.PathLike | None = None,
+    ingest: str | os.PathLike | None = None,
+    roi: Roi | Mapping | None = None,
+    log_path: str | os.PathLike | None = None,
+) -> list[Path]:
+    """Open the stores and write the requested figures and tables.
+
+    Parameters
+    ----------
+    outputs : mapping
+        Kind (a key of :data:`FIGURE_KINDS`) -> one path or a list of paths.
+        Figures take the image format of each path's suffix (PNG); tables are
+        written as HTML for ``.html`` and as CSV otherwise.
+    calibration, training, summary : path-like, optional
+        The calibration store, the training store, ``summary.json``.
+    features, registered : path-like, optional
+        One item's features and registered stores (kind ``features``).
+    labels, ingest : path-like, optional
+        One scene's labels and ingest stores (kind ``labels``; with
+        ``summary``, the accuracy appears in the titles).
+    roi : Roi or {"y": [a, b], "x": [c, d]}, optional
+        The item's roi (kind ``features``).
+    log_path : path-like, optional
+        The job's log file.
+
+    Returns
+    -------
+    list of Path
+        The files written.
+
+    Raises
+    ------
+    ValueError
+        An unknown kind, or a kind whose inputs are not given.
+    """
+    from surffin.pipeline import logging_to
+    from surffin.stages import as_roi
+    from surffin.store import open_store
+
+    given = {"calibration": calibration, "training": training, "summary": summary, "features": features,
+             "registered": registered, "labels": labels, "ingest": ingest}
+    for kind in outputs:
+        if kind not in FIGURE_KINDS:
+            raise ValueError(f"unknown figure kind {kind!r}; known: {sorted(FIGURE_KINDS)}")
+        missing = [name for name in FIGURE_KINDS[kind] if given[name] is None]
+        if missing:
+            raise ValueError(f"figure {kind!r} needs {missing}")
+    with logging_to(log_path):
+        opened = {
+            name: open_store(path) for name, path in given.items() if path is not None and name != "summary"
+        }
+        if summary is not None:
+            opened["summary"] = json.loads(Path(summary).read_text())
+        scene = opened["labels"].attrs.get("item") if "labels" in opened else None
+        makers = {
+            "calibration_fit": lambda path: plot_calibration_fit(opened["calibration"], path),
+            "calibration_r2": lambda path: plot_r2_map(opened["calibration"], path),
+            "calibration_table": lambda path: write_table(parameter_table(opened["calibration"]), path),
+            "wall_reflectance": lambda path: plot_wall_reflectance(opened["calibration"], path),
+            "feature_space": lambda path: plot_feature_space(opened["training"], path),
+            "accuracy_table": lambda path: write_table(accuracy_table(opened["summary"]), path),
+            "features": lambda path: plot_features(opened["features"], opened["registered"], path, roi=as_roi(roi)),
+            "labels": lambda path: plot_labels(
+                opened["labels"], opened["ingest"], path, scores=opened.get("summary", {}).get("scenes", {}).get(scene)
+            ),
+        }
+        written = []
+        for kind, value in outputs.items():
+            for path in _paths(value):
+                written.append(makers[kind](path))
+                log.info("figures: wrote %s (%s)", path, kind)
+        return written
