@@ -126,11 +126,12 @@ def _specimen(preset: Preset, seed: int, index: int) -> Acquisition:
 
 
 def _scene(preset: Preset, seed: int) -> Acquisition:
-    """All specimens on one board in rows of two, each turned by its ``scene_rotations`` angle."""
+    """The first ``len(scene_rotations)`` specimens on one board in rows of two, each turned by its angle."""
     height = preset.specimen_thickness
     pitch = preset.specimen_size + preset.scene_gap
     faces = [plane_face("board", preset.board)]
-    for index, (specimen, rotation) in enumerate(zip(preset.specimens, preset.scene_rotations, strict=True)):
+    shown = preset.specimens[: len(preset.scene_rotations)]
+    for index, (specimen, rotation) in enumerate(zip(shown, preset.scene_rotations, strict=True)):
         row, column = divmod(index, 2)
         centre = (_SCENE_CENTRE[0] + pitch * (column - 0.5), _SCENE_CENTRE[1] + pitch * (row - 0.5))
         label = preset.classes.index(specimen.cls)
@@ -156,8 +157,9 @@ def plan_campaign(preset: Preset, seed: int) -> list[Acquisition]:
     -------
     list of Acquisition
         The calibration wall, the reference panel, one per specimen (alone on
-        the board, at the image centre) and the scene ``T1`` (all specimens in a
-        2 x 2 arrangement, rotated in-plane by ``preset.scene_rotations``).
+        the board, at the image centre) and the scene ``T1`` (the first
+        ``len(preset.scene_rotations)`` specimens, all of them in the named
+        presets, in rows of two, rotated in-plane by ``preset.scene_rotations``).
         Specimen and scene views look at the centre of their top faces, with
         azimuths following the golden angle from a different start per item.
     """

@@ -14,14 +14,14 @@ roughness.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from surffin.simulate.camera import PinholeCamera
 from surffin.simulate.scene import Material, Texture
 
-__all__ = ["Specimen", "Preset", "plaster", "PRESETS"]
+__all__ = ["Specimen", "Preset", "plaster", "scaled_preset", "PRESETS"]
 
 _PAPER_CAMERA = PinholeCamera(width=640, height=480, fx=565.0, fy=579.0)
 _TINY_SCALE = 8
@@ -158,7 +158,8 @@ class Preset:
     specimen_tilts : tuple of float, degrees
         One view per tilt, the first is the reference view.
     scene_rotations : tuple of float, degrees
-        In-plane rotation of each specimen in the scene, in ``specimens`` order.
+        In-plane rotation of each specimen in the scene, in ``specimens`` order;
+        the scene holds the first ``len(scene_rotations)`` specimens.
     scene_gap : float, metres
         Between neighbouring specimens of the 2 x 2 scene.
     scene_distance : float, metres
@@ -235,6 +236,43 @@ def _tiny() -> Preset:
         scene_distance=0.65,
         scene_tilts=(5.0, 25.0, 45.0),
     )
+
+
+def scaled_preset(preset: Preset, n_specimens: int) -> Preset:
+    """``preset`` with ``n_specimens`` reference specimens, for campaign-scale benchmarks.
+
+    Specimen ``k`` (from 0) repeats the class and material of
+    ``preset.specimens[k % K]`` (K specimens in ``preset``) under its own name
+    ``<name>-<k // K + 1:02d>`` (``S1-01``, ``S2-01``, ..., ``S1-02``, ...).
+    Its material is renamed alike, so it gets its own texture draw; it lies
+    at its own place on the board and is seen from its own poses (see
+    :func:`~surffin.simulate.plan.plan_campaign`). The scene keeps the first
+    ``len(preset.scene_rotations)`` specimens: one of each class for the
+    named presets.
+
+    Parameters
+    ----------
+    preset : Preset
+    n_specimens : int
+        At least ``len(preset.scene_rotations)``.
+
+    Returns
+    -------
+    Preset
+        Named ``<preset.name>-x<n_specimens>``.
+    """
+    base = preset.specimens
+    if int(n_specimens) != n_specimens or n_specimens < len(preset.scene_rotations):
+        raise ValueError(
+            f"n_specimens must be an integer >= {len(preset.scene_rotations)} (the specimens of the scene), "
+            f"got {n_specimens!r}"
+        )
+    specimens = []
+    for index in range(int(n_specimens)):
+        template, copy = base[index % len(base)], f"{index // len(base) + 1:02d}"
+        material = replace(template.material, name=f"{template.material.name}-{copy}")
+        specimens.append(replace(template, name=f"{template.name}-{copy}", material=material))
+    return replace(preset, name=f"{preset.name}-x{int(n_specimens)}", specimens=tuple(specimens))
 
 
 #: The named presets: ``paper`` (the paper's camera and acquisition design) and
