@@ -62,9 +62,9 @@ def registration_stage(
     roi = as_roi(roi)
     # The roi picks the plane a homography registers (a specimen on its board); poses need none.
     options = {"roi": {"y": list(roi.y), "x": list(roi.x)}} if roi is not None and method != "poses" else {}
-    maps = registration_maps(ingest.load(), method=method, **options)
+    maps = registration_maps(ingest.compute(), method=method, **options)
     both = xr.Dataset({"reflectance": reflectance["reflectance"], "aoi": aoi["aoi"]})
-    registered = register(both.load(), maps)
+    registered = register(both.compute(), maps)
     registered.attrs = {**registered.attrs, **_item_attrs(ingest)}
     return registered
 
