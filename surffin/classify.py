@@ -23,6 +23,7 @@ so their cost does not depend on the window size.
 from __future__ import annotations
 
 import numbers
+from collections import Counter
 from collections.abc import Mapping, Sequence
 
 import cv2
@@ -92,9 +93,29 @@ def _standardised(samples: xr.Dataset) -> xr.Dataset:
     return out
 
 
-def _pooled(parts: Sequence[xr.Dataset]) -> xr.Dataset:
-    """Samples of several sets in one, standardised (:func:`_standardised`)."""
-    return _standardised(xr.concat(parts, "sample", data_vars="all", coords="minimal", compat="override", join="exact"))
+def _evenly(index: np.ndarray, count: int | None) -> np.ndarray:
+    """At most ``count`` entries of ``index`` spread evenly over it, in order (all if None)."""
+    if count is None or index.size <= count:
+        return index
+    return index[(np.arange(count) * index.size) // count]
+
+
+def _check_cap(max_per_class) -> int | None:
+    if max_per_class is not None and (
+        isinstance(max_per_class, bool) or not isinstance(max_per_class, numbers.Integral) or max_per_class < 1
+    ):
+        raise ValueError(f"max_per_class must be a positive integer or None, got {max_per_class!r}")
+    return max_per_class
+
+
+def _pooled(parts: Sequence[xr.Dataset], max_per_class: int | None = None) -> xr.Dataset:
+    """Samples of several sets in one, at most ``max_per_class`` of each class, standardised."""
+    samples = xr.concat(parts, "sample", data_vars="all", coords="minimal", compat="override", join="exact")
+    if max_per_class is not None:
+        classes = np.asarray(_names(samples["class"].values))
+        keep = np.sort(np.concatenate([_evenly(np.flatnonzero(classes == c), max_per_class) for c in np.unique(classes)]))
+        samples = samples.isel(sample=keep)
+    return _standardised(samples)
 
 
 def _samples(values: np.ndarray, name: str, class_name: str, y: np.ndarray, x: np.ndarray) -> xr.Dataset:
@@ -113,8 +134,15 @@ def _samples(values: np.ndarray, name: str, class_name: str, y: np.ndarray, x: n
     )
 
 
-def training_set(items: Mapping[str, tuple[xr.Dataset, str, Roi | None]]) -> xr.Dataset:
+def training_set(
+    items: Mapping[str, tuple[xr.Dataset, str, Roi | None]], *, max_per_class: int | None = None
+) -> xr.Dataset:
     """Pool the feature vectors of reference specimens into a training set.
+
+    Items are read one at a time (pass lazy, dask-backed Datasets to keep only
+    one item's features in memory), and with ``max_per_class`` each class keeps
+    at most that many samples, so the memory of the training set and of the
+    classifier built from it does not grow with the number of specimens.
 
     Parameters
     ----------
@@ -122,6 +150,12 @@ def training_set(items: Mapping[str, tuple[xr.Dataset, str, Roi | None]]) -> xr.
         ``features``: Dataset (y, x) with :data:`FEATURES` (output of
         :func:`surffin.features.features`); ``roi``: the specimen's pixels in
         sensor coordinates, or None for all pixels.
+    max_per_class : int, optional
+        Cap on the samples of a class. A class of ``m`` items takes at most
+        ``ceil(max_per_class / m)`` samples from each, spread evenly over the
+        item's pixels in row-major order (a deterministic subsample that
+        keeps every item and every part of it), then at most
+        ``max_per_class`` of the pooled ones the same way. None keeps all.
 
     Returns
     -------
@@ -141,6 +175,8 @@ def training_set(items: Mapping[str, tuple[xr.Dataset, str, Roi | None]]) -> xr.
     """
     if not items:
         raise ValueError("training_set needs at least one item")
+    cap = _check_cap(max_per_class)
+    items_of_class = Counter(class_name for _, class_name, _ in items.values())
     parts = []
     for name, (ds, class_name, roi) in items.items():
         part = ds if roi is None else select_roi(ds, roi)
@@ -151,18 +187,21 @@ def training_set(items: Mapping[str, tuple[xr.Dataset, str, Roi | None]]) -> xr.
                 f"training item {name!r} (class {class_name!r}): no pixel{where} has all of {list(FEATURES)} "
                 "finite; check its roi and its feature store"
             )
-        y, x = (coord.ravel()[finite] for coord in np.meshgrid(part["y"].values, part["x"].values, indexing="ij"))
-        parts.append(_samples(values[finite], str(name), str(class_name), y, x))
-    return _pooled(parts)
+        keep = _evenly(np.flatnonzero(finite), None if cap is None else -(-cap // items_of_class[class_name]))
+        y, x = (coord.ravel()[keep] for coord in np.meshgrid(part["y"].values, part["x"].values, indexing="ij"))
+        parts.append(_samples(values[keep], str(name), str(class_name), y, x))
+    return _pooled(parts, cap)
 
 
-def combine_training(*training: xr.Dataset) -> xr.Dataset:
+def combine_training(*training: xr.Dataset, max_per_class: int | None = None) -> xr.Dataset:
     """Concatenate training sets (e.g. from several campaigns) and recompute the standardisation.
 
     Parameters
     ----------
     *training : Dataset
         Outputs of :func:`training_set` (or of this function, or read back from zarr).
+    max_per_class : int, optional
+        Cap on the samples of a class, spread evenly over its samples in the order given.
 
     Returns
     -------
@@ -172,7 +211,7 @@ def combine_training(*training: xr.Dataset) -> xr.Dataset:
     if not training:
         raise ValueError("combine_training needs at least one training set")
     parts = [t.drop_vars(["feature_mean", "feature_std"], errors="ignore").load() for t in training]
-    return _pooled(parts)
+    return _pooled(parts, _check_cap(max_per_class))
 
 
 def _check_k(k, n_samples: int) -> int:

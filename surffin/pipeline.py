@@ -228,9 +228,14 @@ def run_training(
     *,
     specimens: Mapping[str, Mapping],
     extra: tuple[str, ...] = (),
+    max_per_class: int | None = None,
     log_path: str | os.PathLike | None = None,
 ) -> Path:
     """Pool the specimens' features (and other campaigns' training sets) into ``training.zarr``.
+
+    Feature stores are opened lazily and read one at a time, and each class keeps
+    at most ``max_per_class`` samples, so the job's memory does not grow with the
+    number of specimens.
 
     Parameters
     ----------
@@ -238,19 +243,22 @@ def run_training(
         Item name -> ``{"store": features store, "class": name, "roi": {"y", "x"} or None}``.
     extra : tuple of path-like
         Training stores of other campaigns to add.
+    max_per_class : int, optional
+        Cap on the samples of each class (:func:`surffin.classify.training_set`).
     """
     from surffin.classify import combine_training, training_set
 
     with logging_to(log_path):
         items = {
-            name: (open_store(spec["store"]).compute(), spec["class"], stages.as_roi(spec["roi"]))
+            name: (open_store(spec["store"], stage="features"), spec["class"], stages.as_roi(spec["roi"]))
             for name, spec in specimens.items()
         }
-        ds = training_set(items)
+        ds = training_set(items, max_per_class=max_per_class)
         if extra:
-            ds = combine_training(ds, *(open_store(path).compute() for path in extra))
+            ds = combine_training(ds, *(open_store(path, stage="training") for path in extra), max_per_class=max_per_class)
         log.info("training set: %d samples of classes %s", ds.sizes["sample"], ds.attrs["classes"])
-        ds.attrs = {**ds.attrs, **provenance("training", {"extra": list(extra)}, {n: str(s["store"]) for n, s in specimens.items()})}
+        parameters = {"extra": list(extra), "max_per_class": max_per_class}
+        ds.attrs = {**ds.attrs, **provenance("training", parameters, {n: str(s["store"]) for n, s in specimens.items()})}
         return _timed_write(ds, output, {"sample": 1 << 20})
 
 

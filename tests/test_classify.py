@@ -146,6 +146,36 @@ def test_combine_training_through_zarr(tmp_path):
     np.testing.assert_array_equal(classify(scene, combined).values, classify(scene, training_set(specimens())).values)
 
 
+def test_training_cap_keeps_evenly_spread_samples_of_every_item():
+    # two S1 items of 192 pixels (one with a NaN) and one S2 item: cap 50 per class
+    first, second = feature_image(CENTRES["S1"], seed=1), feature_image(CENTRES["S1"], seed=2)
+    first["R0"][0, 3] = np.nan
+    items = {"a": (first, "S1", None), "b": (second, "S1", None), "c": (feature_image(CENTRES["S2"], seed=3), "S2", None)}
+    capped = training_set(items, max_per_class=50)
+    full = training_set(items)
+    classes = np.asarray(capped["class"].values).astype(str)
+    assert (classes == "S1").sum() == 50 and (classes == "S2").sum() == 50
+    sources = np.asarray(capped["item"].values).astype(str)
+    assert (sources == "a").sum() == 25 and (sources == "b").sum() == 25
+    # a subset of the full set, spread over the whole image of each item
+    full_rows = {tuple(row) for row in full["features"].values}
+    assert all(tuple(row) in full_rows for row in capped["features"].values)
+    for name in "abc":
+        rows = capped["y"].values[sources == name]
+        assert rows.min() <= Y0 + 1 and rows.max() >= Y0 + 10
+    # the standardisation is that of the kept samples; a cap above the counts keeps all
+    np.testing.assert_allclose(capped["feature_mean"], capped["features"].values.mean(axis=0), rtol=1e-14)
+    assert training_set(items, max_per_class=1000).sizes["sample"] == full.sizes["sample"]
+    combined = combine_training(full, full, max_per_class=70)
+    assert sorted(np.unique(np.asarray(combined["class"].values).astype(str), return_counts=True)[1]) == [70, 70]
+
+
+@pytest.mark.parametrize("cap", [0, -3, 2.5, True])
+def test_training_cap_must_be_a_positive_integer(cap):
+    with pytest.raises(ValueError, match="max_per_class"):
+        training_set(specimens(), max_per_class=cap)
+
+
 def brute_filter(label, size, kind):
     """Label filter pixel by pixel: -1 and outside pixels do not vote, -1 stays -1."""
     r = size // 2

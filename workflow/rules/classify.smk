@@ -11,6 +11,7 @@ rule training:
     params:
         specimens=specimen_settings,
         extra=config["extra_training"],
+        max_per_class=config["classify"]["max_training_samples"],
         code=STAGE_VERSION["training"],
     threads: 1
     conda:

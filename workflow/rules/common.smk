@@ -27,7 +27,7 @@ STAGE_VERSION = {
     "reflectance": 1,
     "registration": 1,
     "features": 1,
-    "training": 1,
+    "training": 2,
     "labels": 1,
     "summary": 2,
     "figures": 1,
