@@ -11,6 +11,7 @@ include: "workflow/rules/ingest.smk"
 include: "workflow/rules/calibration.smk"
 include: "workflow/rules/method.smk"
 include: "workflow/rules/classify.smk"
+include: "workflow/rules/roughness.smk"
 include: "workflow/rules/report.smk"
 
 

@@ -35,6 +35,8 @@ __all__ = [
     "check_calibration",
     "run_training",
     "run_summary",
+    "run_roughness_relation",
+    "run_roughness_map",
 ]
 
 log = logging.getLogger("surffin")
@@ -46,6 +48,7 @@ STAGES = {
     "registration": stages.registration_stage,
     "features": stages.features_stage,
     "labels": stages.labels_stage,
+    "roughness": stages.roughness_stage,
 }
 
 
@@ -274,6 +277,25 @@ def _feature_statistics(ds) -> dict:
     return stats
 
 
+def _features_region(spec: Mapping):
+    """The features store of ``{"store", "roi"}``, lazily, cut to its roi when it has one."""
+    from surffin.features import select_roi
+
+    ds = open_store(spec["store"], stage="features")
+    roi = stages.as_roi(spec["roi"])
+    return ds if roi is None else select_roi(ds, roi)
+
+
+def _write_json(output: str | os.PathLike, data) -> Path:
+    """Write ``data`` as indented JSON, atomically."""
+    from surffin.viewfile import write_atomically
+
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    write_atomically(output, (json.dumps(data, indent=2) + "\n").encode())
+    return output
+
+
 def run_summary(
     output: str | os.PathLike,
     *,
@@ -296,18 +318,13 @@ def run_summary(
     """
     from surffin.campaign import read_truth
     from surffin.classify import class_fractions, score
-    from surffin.features import select_roi
-    from surffin.viewfile import write_atomically
 
     with logging_to(log_path):
         summary = {"items": {}, "scenes": {}}
         for name, spec in features.items():
-            ds = open_store(spec["store"], stage="features")
-            roi = stages.as_roi(spec["roi"])
-            region = ds if roi is None else select_roi(ds, roi)
             summary["items"][name] = {
-                "region": "roi" if roi is not None else "image",
-                **_feature_statistics(region.compute()),
+                "region": "image" if spec["roi"] is None else "roi",
+                **_feature_statistics(_features_region(spec).compute()),
             }
         for name, path in labels.items():
             ds = open_store(path, stage="labels").compute()
@@ -319,7 +336,53 @@ def run_summary(
                 scene["accuracy"] = {v: score(ds[v], truth_label, truth_classes, classes) for v in ("label", "label_filtered")}
                 log.info("%s: accuracy %s", name, {v: s["accuracy"] for v, s in scene["accuracy"].items()})
             summary["scenes"][name] = scene
-        output = Path(output)
-        output.parent.mkdir(parents=True, exist_ok=True)
-        write_atomically(output, (json.dumps(summary, indent=2) + "\n").encode())
-        return output
+        return _write_json(output, summary)
+
+
+def run_roughness_relation(
+    output: str | os.PathLike,
+    *,
+    specimens: Mapping[str, Mapping],
+    log_path: str | os.PathLike | None = None,
+) -> Path:
+    """Fit the specimens' relation of mean n and roughness into a JSON file.
+
+    Parameters
+    ----------
+    specimens : mapping
+        Item name -> ``{"store": features store, "roi": {"y", "x"} or None,
+        "roughness_mm": float}``; only specimens with a roughness.
+    """
+    from surffin.roughness import roughness_relation
+
+    with logging_to(log_path):
+        mean_n = {name: float(_features_region(spec)["n"].mean().compute()) for name, spec in specimens.items()}
+        relation = roughness_relation(mean_n, {name: spec["roughness_mm"] for name, spec in specimens.items()})
+        log.info(
+            "roughness relation over %d specimens: n = %.4f %+.4f roughness_mm, R^2 %.4f",
+            len(specimens), relation["intercept"], relation["slope"], relation["r2"],
+        )
+        relation["inputs"] = {name: str(spec["store"]) for name, spec in specimens.items()}
+        return _write_json(output, relation)
+
+
+def run_roughness_map(
+    output: str | os.PathLike,
+    *,
+    features: str | os.PathLike,
+    relation: str | os.PathLike,
+    chunks: Mapping[str, int] | None = None,
+    scheduler: str | None = None,
+    threads: int = 1,
+    log_path: str | os.PathLike | None = None,
+) -> Path:
+    """Write an item's indicative roughness map from its features store and the relation JSON.
+
+    The relation (of :func:`run_roughness_relation`) becomes the stage's
+    parameter, so the store records the line it was made with.
+    """
+    params = {"relation": json.loads(Path(relation).read_text())}
+    return run_stage(
+        "roughness", output, stores={"features": features}, params=params,
+        chunks=chunks, scheduler=scheduler, threads=threads, log_path=log_path,
+    )

@@ -17,6 +17,7 @@ from surffin.classify import classify, filter_labels
 from surffin.features import DEFAULT_SIZE, features, most_perpendicular_view, variability
 from surffin.geometry import DEFAULT_JUMP, DEFAULT_WINDOW, angle_of_incidence
 from surffin.registration import register, registration_maps, warp
+from surffin.roughness import roughness_map
 from surffin.scattering import DEFAULT_MIN_SPREAD, fit_scattering
 
 __all__ = [
@@ -25,6 +26,7 @@ __all__ = [
     "registration_stage",
     "features_stage",
     "labels_stage",
+    "roughness_stage",
     "process_item",
     "as_roi",
 ]
@@ -110,6 +112,12 @@ def labels_stage(
     filtered = filter_labels(label, kind=filter_kind, size=filter_size)
     filtered.attrs = {**label.attrs, "filter": filter_kind, "filter_size": filter_size}
     return xr.Dataset({"label": label, "label_filtered": filtered}, attrs=features.attrs)
+
+def roughness_stage(features: xr.Dataset, *, relation: Mapping) -> xr.Dataset:
+    """Indicative roughness map of an item from its smoothed n (:mod:`surffin.roughness`)."""
+    ds = roughness_map(features["n"], relation)
+    ds.attrs = {**_item_attrs(features), **ds.attrs}
+    return ds
 
 
 def process_item(ingest: xr.Dataset, calibration: xr.Dataset, *, roi=None, method: str = "auto", **params) -> dict:

@@ -16,7 +16,8 @@ import surffin
 
 REPO = Path(__file__).resolve().parents[1]
 ITEM_CHAIN = {"ingest", "aoi", "reflectance", "registration", "features", "item_figures"}
-DOWNSTREAM = {"training": 1, "labels": 1, "summary": 1, "classification_figures": 1, "scene_figures": 1, "all": 1}
+ROUGHNESS = {"roughness_relation": 1, "roughness_map": 1}
+DOWNSTREAM = {"training": 1, "labels": 1, "summary": 1, "classification_figures": 1, "scene_figures": 1, "all": 1, **ROUGHNESS}
 
 
 def snakemake(workdir, *args, config=(), overrides=None, snakefile=REPO / "Snakefile"):
@@ -101,6 +102,12 @@ def test_every_store_follows_the_contract(done):
     assert summary["items"]["S1"]["n"]["n_pixels"] <= camp.specimens["S1"].roi.shape[0] * camp.specimens["S1"].roi.shape[1]
     accuracy = summary["scenes"]["T1"]["accuracy"]
     assert 0 <= accuracy["label"]["accuracy"] <= 1 and 0 <= accuracy["label_filtered"]["accuracy"] <= 1
+    relation = json.loads((processed / "roughness" / "relation.json").read_text())
+    assert set(relation["specimens"]) == {"S1", "S2", "S3", "S4"}
+    assert relation["slope"] < 0  # the tiny preset's plaster: n falls with roughness
+    rough = xr.open_zarr(processed / "roughness" / "T1.zarr")
+    assert rough["roughness"].attrs["units"] == "mm" and "indicative" in rough.attrs["comment"]
+    assert rough.attrs["surffin_stage"] == "roughness"
 
 
 def test_nothing_left_after_a_complete_run(done):
@@ -110,13 +117,13 @@ def test_nothing_left_after_a_complete_run(done):
 def test_smoothing_change_reruns_features_and_below_only(done):
     jobs = planned_jobs(done, overrides={"features": {"smoothing": 5}})
     figures = {"item_figures": 5, "classification_figures": 1, "scene_figures": 1}
-    assert jobs == {"features": 5, "training": 1, "labels": 1, "summary": 1, "all": 1, **figures}
+    assert jobs == {"features": 5, "training": 1, "labels": 1, "summary": 1, "all": 1, **figures, **ROUGHNESS}
 
 
 def test_aoi_window_change_reruns_from_aoi_down(done):
     jobs = planned_jobs(done, overrides={"aoi": {"window": 11, "jump": 0.16}})
     downstream = {"aoi", "reflectance", "registration", "features", "training", "labels", "summary", "all"}
-    assert set(jobs) == downstream | {"item_figures", "classification_figures", "scene_figures"}
+    assert set(jobs) == downstream | {"item_figures", "classification_figures", "scene_figures", *ROUGHNESS}
     assert jobs["aoi"] == 5
 
 

@@ -6,6 +6,7 @@ from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 import surffin
+import surffin.roughness
 from surffin.errors import SurffinError
 
 
@@ -31,6 +32,7 @@ STAGE_VERSION = {
     "labels": 1,
     "summary": 2,
     "figures": 1,
+    "roughness": 1,
 }
 
 
@@ -118,8 +120,12 @@ def calibration_settings(wildcards):
     return {"reflectance": ref.reflectance, "roi": {"y": list(ref.roi.y), "x": list(ref.roi.x)}}
 
 
+def features_of(names):
+    return {name: f"{PROCESSED}/features/{name}.zarr" for name in names}
+
+
 def specimen_features(wildcards):
-    return {name: f"{PROCESSED}/features/{name}.zarr" for name in CAMP.specimens}
+    return features_of(CAMP.specimens)
 
 
 def specimen_settings(wildcards):
@@ -127,6 +133,30 @@ def specimen_settings(wildcards):
         name: {"store": f"{PROCESSED}/features/{name}.zarr", "class": item.cls, "roi": roi_of(name)}
         for name, item in CAMP.specimens.items()
     }
+
+
+ROUGH_SPECIMENS = [name for name, item in CAMP.specimens.items() if item.roughness_mm is not None]
+
+
+def roughness_settings(wildcards):
+    return {
+        name: {**specimen_settings(wildcards)[name], "roughness_mm": CAMP.items[name].roughness_mm}
+        for name in ROUGH_SPECIMENS
+    }
+
+
+def roughness_features(wildcards):
+    return features_of(ROUGH_SPECIMENS)
+
+
+def roughness_outputs():
+    """The relation and the scenes' maps, when enough specimens carry a roughness."""
+    if len(ROUGH_SPECIMENS) < surffin.roughness.MIN_SPECIMENS:
+        return []
+    return [
+        f"{PROCESSED}/roughness/relation.json",
+        *expand(f"{PROCESSED}/roughness/{{scene}}.zarr", scene=CAMP.scenes),
+    ]
 
 
 def scene_truth(wildcards):
@@ -155,4 +185,5 @@ def final_outputs(wildcards):
         *item_stores("features"),
         *expand(f"{PROCESSED}/labels/{{scene}}.zarr", scene=CAMP.scenes),
         f"{PROCESSED}/summary.json",
+        *roughness_outputs(),
     ]

@@ -1,0 +1,42 @@
+rule roughness_relation:
+    input:
+        unpack(roughness_features),
+    output:
+        f"{PROCESSED}/roughness/relation.json",
+    log:
+        f"{LOGS}/roughness/relation.log",
+    benchmark:
+        f"{LOGS}/benchmarks/roughness/relation.tsv"
+    params:
+        specimens=roughness_settings,
+        code=STAGE_VERSION["roughness"],
+    threads: 1
+    conda:
+        ENV
+    resources:
+        mem_mb=1000,
+    script:
+        "../scripts/roughness_relation.py"
+
+
+rule roughness_map:
+    input:
+        features=f"{PROCESSED}/features/{{scene}}.zarr",
+        relation=f"{PROCESSED}/roughness/relation.json",
+    output:
+        directory(f"{PROCESSED}/roughness/{{scene}}.zarr"),
+    log:
+        f"{LOGS}/roughness/{{scene}}.log",
+    benchmark:
+        f"{LOGS}/benchmarks/roughness/{{scene}}.tsv"
+    params:
+        chunks=config["chunks"],
+        scheduler=config["scheduler"],
+        code=STAGE_VERSION["roughness"],
+    threads: 1
+    conda:
+        ENV
+    resources:
+        mem_mb=1000,
+    script:
+        "../scripts/roughness_map.py"
