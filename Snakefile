@@ -13,6 +13,7 @@ include: "workflow/rules/method.smk"
 include: "workflow/rules/classify.smk"
 include: "workflow/rules/roughness.smk"
 include: "workflow/rules/report.smk"
+include: "workflow/rules/sensitivity.smk"
 
 
 rule all:
@@ -22,4 +23,5 @@ rule all:
         rules.classification_figures.output,
         expand(rules.item_figures.output.features, item=CAMP.items),
         expand(rules.scene_figures.output.labels, scene=CAMP.scenes),
+        rules.sensitivity.output,
     default_target: True

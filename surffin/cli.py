@@ -1,4 +1,4 @@
-"""The ``surffin`` command: simulate campaigns, check them, look into stores."""
+"""The ``surffin`` command: simulate campaigns, check them, look into stores, run the sensitivity analysis."""
 
 from __future__ import annotations
 
@@ -38,6 +38,44 @@ def _inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+def _whole_number(minimum: int):
+    """An argparse type: an integer of at least ``minimum``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"{value} is below the minimum {minimum}")
+        return value
+
+    return parse
+
+
+def _sensitivity(args: argparse.Namespace) -> int:
+    from surffin.sensitivity import THRESHOLD, run_sensitivity, separation_summary, views_slopes
+    from surffin.store import open_store
+
+    paths = run_sensitivity(args.out, draws=args.draws, seed=args.seed)
+    table = open_store(paths["store"], stage="sensitivity").load()
+    print(f"{args.out}: sensitivity analysis, {args.draws} draws per configuration, seed {args.seed}")
+    print(f"  wrote {', '.join(path.name for path in paths.values())}")
+    print("std ~ K^slope, K = 2..10 views over 0..45 deg (paper: R0 -0.5, n -1):")
+    slopes = views_slopes(table).to_dataframe()
+    for (noise, level, sigma), rows in slopes.groupby(["noise", "level", "sigma"], sort=False):
+        fits = ", ".join(f"{r.parameter} {r.slope:+.2f} ± {r.slope_stderr:.2f} (K >= 3: {r.slope_from_3:+.2f})"
+                         for r in rows.itertuples())
+        print(f"  {noise} {level} (σ {sigma:g}{' deg' if noise == 'aoi' else ''}): {fits}")
+    print(f"two views, one at 45 deg: separation from which std < {100 * THRESHOLD:g} % (and no fit fails):")
+    summary = separation_summary(table).to_dataframe()
+    for (noise, level, sigma), rows in summary.groupby(["noise", "level", "sigma"], sort=False):
+        needed = ", ".join(f"{r.parameter} {r.required_separation_deg:g} deg ({r.no_failures_from_deg:g} deg)"
+                           for r in rows.itertuples())
+        print(f"  {noise} {level} (σ {sigma:g}{' deg' if noise == 'aoi' else ''}): {needed}")
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     from surffin import simulate
 
@@ -57,6 +95,14 @@ def _parser() -> argparse.ArgumentParser:
     inspect = commands.add_parser("inspect", help="print what a processed store holds and how it was made")
     inspect.add_argument("store", help="path of a .zarr store")
     inspect.set_defaults(run=_inspect)
+
+    sensitivity = commands.add_parser(
+        "sensitivity", help="Monte Carlo of the scattering fit's sensitivity to noise (paper section 4)"
+    )
+    sensitivity.add_argument("--out", required=True, help="output folder (table, zarr store, slopes, figures)")
+    sensitivity.add_argument("--draws", type=_whole_number(2), default=500, help="draws per configuration (default 500)")
+    sensitivity.add_argument("--seed", type=_whole_number(0), default=0, help="random seed (default 0)")
+    sensitivity.set_defaults(run=_sensitivity)
     return parser
 
 

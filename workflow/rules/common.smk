@@ -33,6 +33,7 @@ STAGE_VERSION = {
     "summary": 2,
     "figures": 1,
     "roughness": 1,
+    "sensitivity": 1,
 }
 
 
