@@ -1,8 +1,9 @@
 """Campaign scale: specimens per minute, memory per job, start-up share; one cube 10x a frame.
 
-Run by hand: ``python benchmarks/bench_campaign.py [--specimens 10 50] [--one-thread]
+Run by hand: ``python benchmarks/bench_campaign.py [--specimens 10 50] [--variants default ...]
 [--cubes 480x640 1600x1920] [--workdir DIR]`` (about 15 minutes on 2 cores with the defaults,
-30 with ``--one-thread`` and a 3200x3840 cube). Prints tables; nothing is written inside the repository.
+each further variant adds its campaign runs). Prints tables; nothing is written inside the
+repository.
 
 Campaigns
 ---------
@@ -34,8 +35,10 @@ with ``snakemake --cores 2`` and the repository's default configuration.
   campaign's first specimen (and its scene's labels) is rerun twice in a fresh process from the
   parameters and inputs recorded in its store; first minus second call is that cost. **overhead
   incl. first use** also charges every job the median of it.
-- ``--one-thread`` also runs each campaign with the per-item stages at one thread
-  (``--set-threads``), which lets two of them run at once on 2 cores.
+- ``--variants`` runs each campaign also with other settings, to measure the defaults against
+  them: ``item stages 2 threads`` (``--set-threads``: one per-item stage at a time, with two
+  dask threads; the defaults run them at one thread, two jobs at once) and ``ilp scheduler``
+  (snakemake's ILP job scheduler instead of the greedy one of ``profiles/default``).
 
 Targets: >= 30 specimens/min, overhead <= 50 %, peak memory per job <= 1 GB and not growing
 with N.
@@ -75,13 +78,15 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 CORES = 2
-#: Per-item stages: the rules ``--one-thread`` runs at one thread.
+#: Per-item stages: the rules the ``item stages 2 threads`` variant runs at two threads.
 ITEM_STAGES = ("aoi", "reflectance", "registration", "features", "labels")
 #: Labels and extra snakemake arguments of the runs of each campaign.
-VARIANTS = (
-    ("default threads", ()),
-    ("item stages 1 thread", ("--set-threads", *(f"{rule}=1" for rule in ITEM_STAGES))),
-)
+#: Variants of a campaign run: name -> extra snakemake arguments. The first is the default.
+VARIANTS = {
+    "default": (),
+    "item stages 2 threads": ("--set-threads", *(f"{rule}=2" for rule in ITEM_STAGES)),
+    "ilp scheduler": ("--scheduler", "ilp"),
+}
 _DONE = re.compile(r"INFO \w+ done in ([0-9.]+) s$", re.M)
 
 
@@ -240,15 +245,15 @@ def first_use(processed: Path, scratch: Path) -> list[dict]:
     return [in_fresh_process(first_and_second_call, str(store), str(scratch / store.parent.name)) for store in stores]
 
 
-def campaign_runs(root: Path, sizes: list[int], one_thread: bool) -> tuple[list[Run], list[dict]]:
-    """Render and process each campaign size (and variant); first-use costs from the first run."""
-    variants = VARIANTS if one_thread else VARIANTS[:1]
+def campaign_runs(root: Path, sizes: list[int], variants: list[str]) -> tuple[list[Run], list[dict]]:
+    """Render and process each campaign size in each variant; first-use costs from the first run."""
     runs, calls = [], []
     for n in sizes:
         campaign = root / f"campaign-{n}"
         seconds = render(campaign, n)
         print(f"rendered {n} specimens in {seconds:.0f} s ({load()})", flush=True)
-        for label, extra in variants:
+        for label in variants:
+            extra = VARIANTS[label]
             workdir = root / f"run-{n}-{len(runs)}"
             workdir.mkdir()
             before = load()
@@ -299,7 +304,7 @@ def report_campaigns(runs: list[Run], calls: list[dict], noop: float) -> None:
         ["stage", "import surffin.pipeline", "first call", "second call", "first use"],
         [[c["stage"], c["import"], c["first"], c["second"], c["first"] - c["second"]] for c in calls],
     )
-    default = [run for run in runs if run.label == VARIANTS[0][0]]
+    default = [run for run in runs if run.label == "default"]
     rules = by_rule(default[0])
     rows = [
         [rule, *(f(j.max_rss_mb for j in by_rule(run)[rule]) for run in default for f in (statistics.median, max))]
@@ -411,14 +416,17 @@ def report_cubes(root: Path, shapes: list[tuple[int, int, int]]) -> None:
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--specimens", type=int, nargs="*", default=[10, 50], help="campaign sizes")
-    parser.add_argument("--one-thread", action="store_true", help="also run with the per-item stages at 1 thread")
+    parser.add_argument(
+        "--variants", nargs="+", choices=list(VARIANTS), default=["default"],
+        help="run variants to compare (default: the repository's settings only)",
+    )
     parser.add_argument("--cubes", nargs="*", default=["480x640", "1600x1920"], help="cube sizes HxW (5 views)")
     parser.add_argument("--workdir", type=Path, help="scratch folder (default: a temporary one, removed after)")
     args = parser.parse_args()
     root = Path(tempfile.mkdtemp(prefix="surffin-bench-", dir=args.workdir))
     try:
         print(f"surffin campaign benchmark in {root}, {os.cpu_count()} cpus, {load()}", flush=True)
-        runs, calls = campaign_runs(root, args.specimens, args.one_thread)
+        runs, calls = campaign_runs(root, args.specimens, args.variants)
         if runs:
             report_campaigns(runs, calls, noop_startup())
         report_cubes(root, [(5, *map(int, size.split("x"))) for size in args.cubes])

@@ -13,7 +13,7 @@ rule aoi:
         chunks=config["chunks"],
         scheduler=config["scheduler"],
         code=STAGE_VERSION["aoi"],
-    threads: 2
+    threads: 1
     conda:
         ENV
     resources:
@@ -39,7 +39,7 @@ rule reflectance:
         chunks=config["chunks"],
         scheduler=config["scheduler"],
         code=STAGE_VERSION["reflectance"],
-    threads: 2
+    threads: 1
     conda:
         ENV
     resources:
@@ -65,7 +65,7 @@ rule registration:
         chunks=config["chunks"],
         scheduler=config["scheduler"],
         code=STAGE_VERSION["registration"],
-    threads: 2
+    threads: 1
     conda:
         ENV
     resources:
@@ -91,7 +91,7 @@ rule features:
         chunks=config["chunks"],
         scheduler=config["scheduler"],
         code=STAGE_VERSION["features"],
-    threads: 2
+    threads: 1
     conda:
         ENV
     resources:
