@@ -9,6 +9,7 @@ configfile: workflow.source_path("config/config.yaml")
 include: "workflow/rules/common.smk"
 include: "workflow/rules/ingest.smk"
 include: "workflow/rules/calibration.smk"
+include: "workflow/rules/diagnostics.smk"
 include: "workflow/rules/method.smk"
 include: "workflow/rules/classify.smk"
 include: "workflow/rules/roughness.smk"
@@ -20,6 +21,7 @@ rule all:
     input:
         final_outputs,
         rules.calibration_figures.output,
+        rules.calibration_diagnostics.output,
         rules.classification_figures.output,
         expand(rules.item_figures.output.features, item=CAMP.items),
         expand(rules.scene_figures.output.labels, scene=CAMP.scenes),

@@ -64,7 +64,7 @@ from surffin.ingest import describe_file
 from surffin.store import provenance
 
 if TYPE_CHECKING:
-    from surffin.campaign import Campaign, Roi
+    from surffin.campaign import Calibration, Campaign, Roi
 
 __all__ = [
     "TERMS",
@@ -77,6 +77,7 @@ __all__ = [
     "fit_calibration",
     "reference_scale",
     "calibration_diagnostics",
+    "calibration_set",
     "calibrate",
     "reflectance",
 ]
@@ -801,9 +802,67 @@ def _observe(campaign: Campaign, path: os.PathLike, window: int, jump: float) ->
     return Observation(str(path), view.intensity, distance, aoi, view.valid)
 
 
+def calibration_set(campaign: Campaign, wall: str, reference: str) -> Calibration:
+    """Another calibration set of a campaign's camera, in folders that ``campaign.yaml`` does not name.
+
+    E.g. a repeat acquisition for repeatability: views of the same wall and of
+    the same reference panel, whose reflectance and roi are those of the
+    campaign's ``calibration:`` section.
+
+    Parameters
+    ----------
+    campaign : Campaign
+        With a ``calibration:`` section.
+    wall, reference : str
+        Folders of the wall and of the panel views, relative to the campaign
+        directory.
+
+    Returns
+    -------
+    Calibration
+        To pass to :func:`calibrate`.
+
+    Raises
+    ------
+    CalibrationError
+        The campaign has no calibration section, or a folder is outside the
+        campaign directory, missing, or holds fewer than 2 view files.
+    ViewFileError
+        A view file is broken, or two share a stem.
+    """
+    from surffin.campaign import MIN_VIEWS, Calibration, Reference
+    from surffin.viewfile import check_view, list_views
+
+    if campaign.calibration is None:
+        raise CalibrationError(
+            f"{campaign.path}: no calibration section, so no reference reflectance and roi for the calibration set "
+            f"{wall}, {reference}; add calibration: to campaign.yaml"
+        )
+    views = {}
+    for key, relative in (("wall", wall), ("reference", reference)):
+        folder = (campaign.root / relative).resolve()
+        if not folder.is_relative_to(campaign.root) or not folder.is_dir():
+            raise CalibrationError(
+                f"{folder}: calibration set {key} folder {relative!r} is not a folder inside the campaign "
+                f"directory {campaign.root}"
+            )
+        found = list_views(folder)
+        if len(found) < MIN_VIEWS:
+            raise CalibrationError(
+                f"{folder}: the calibration set's {key} folder holds {len(found)} view files; expected at least "
+                f"{MIN_VIEWS} (*.npz, *.ply, *.raw)"
+            )
+        for path in found:
+            check_view(path, **campaign.camera.view_kwargs)
+        views[key] = tuple(found)
+    panel = campaign.calibration.reference
+    return Calibration(wall=views["wall"], reference=Reference(views["reference"], panel.reflectance, panel.roi))
+
+
 def calibrate(
     campaign: Campaign,
     *,
+    calibration: Calibration | None = None,
     window: int = DEFAULT_WINDOW,
     jump: float = DEFAULT_JUMP,
     min_obs: int = DEFAULT_MIN_OBS,
@@ -821,7 +880,10 @@ def calibrate(
     Parameters
     ----------
     campaign : Campaign
-        With a ``calibration:`` section.
+        With a ``calibration:`` section, unless ``calibration`` is given.
+    calibration : Calibration, optional
+        The views to fit (default: the campaign's ``calibration:`` section),
+        e.g. another set of :func:`calibration_set`.
     window, jump : optional
         AOI plane-fit window (odd, pixels) and depth-jump threshold of
         :func:`surffin.geometry.angle_of_incidence`.
@@ -843,7 +905,9 @@ def calibrate(
         :data:`SAMPLE_QUANTITIES`; attrs ``scale_k``,
         ``reference_reflectance``, ``reference`` (details of
         :func:`reference_scale`), ``diagnostics``
-        (:func:`calibration_diagnostics`), ``campaign`` and provenance.
+        (:func:`calibration_diagnostics`), ``campaign``, ``calibration_set``
+        (``{"wall", "reference"}`` folders of the views, relative to the
+        campaign directory) and provenance.
 
     Raises
     ------
@@ -851,20 +915,25 @@ def calibrate(
         No calibration section, unknown excluded views, no fitted pixel, or a
         reference view without valid panel pixels.
     """
-    if campaign.calibration is None:
+    if calibration is None and campaign.calibration is None:
         raise CalibrationError(
             f"{campaign.path}: no calibration section; add calibration: (wall, reference) or use an existing "
             f"calibration store"
         )
-    calibration = campaign.calibration
+    calibration = calibration or campaign.calibration
+    reference = calibration.reference
+    folders = {
+        key: str(views[0].parent.relative_to(campaign.root))
+        for key, views in (("wall", calibration.wall), ("reference", reference.views))
+    }
     excluded = set(exclude)
     unknown = sorted(excluded - {path.stem for path in calibration.wall})
     if unknown:
         raise CalibrationError(
-            f"{campaign.path}: calibration.wall has no views named {unknown}; exclude only its view stems"
+            f"{campaign.path}: the wall folder {folders['wall']} has no views named {unknown}; exclude only its "
+            f"view stems"
         )
     wall = [path for path in calibration.wall if path.stem not in excluded]
-    reference = calibration.reference
     total = len(wall) + len(reference.views)
     step = max(1, total // 10)
     done = 0
@@ -889,7 +958,7 @@ def calibrate(
         diagnostics = calibration_diagnostics(ds)
     except CalibrationError as exc:
         raise CalibrationError(
-            f"{campaign.path}: calibration.wall: {exc}; the wall views must cover each pixel at several "
+            f"{campaign.path}: wall folder {folders['wall']}: {exc}; the wall views must cover each pixel at several "
             f"distances and angles, at least {min_obs} times"
         ) from exc
 
@@ -915,6 +984,7 @@ def calibrate(
         reference=details,
         diagnostics=diagnostics,
         campaign=campaign.name,
+        calibration_set=folders,
         **provenance("calibration", parameters, inputs),
     )
 

@@ -192,15 +192,24 @@ def run_calibration(
     output: str | os.PathLike,
     *,
     params: Mapping | None = None,
+    folders: Mapping[str, str] | None = None,
     log_path: str | os.PathLike | None = None,
 ) -> Path:
-    """Fit the camera's radiometric calibration from a campaign's wall and panel views."""
-    from surffin.calibration import calibrate
+    """Fit the camera's radiometric calibration from a campaign's wall and panel views.
+
+    ``folders`` (``{"wall", "reference"}``, relative to the campaign directory)
+    fits another calibration set of the same camera instead of the campaign's
+    ``calibration:`` section, e.g. a repeat set
+    (:func:`surffin.calibration.calibration_set`).
+    """
+    from surffin.calibration import calibrate, calibration_set
     from surffin.campaign import read_campaign
 
     params = dict(params or {})
     with logging_to(log_path):
-        ds = calibrate(read_campaign(campaign), **params)
+        camp = read_campaign(campaign)
+        views = None if folders is None else calibration_set(camp, folders["wall"], folders["reference"])
+        ds = calibrate(camp, calibration=views, **params)
         return _timed_write(ds, output, None)
 
 

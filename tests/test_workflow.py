@@ -17,7 +17,10 @@ import surffin
 REPO = Path(__file__).resolve().parents[1]
 ITEM_CHAIN = {"ingest", "aoi", "reflectance", "registration", "features", "item_figures"}
 ROUGHNESS = {"roughness_relation": 1, "roughness_map": 1}
-DOWNSTREAM = {"training": 1, "labels": 1, "summary": 1, "classification_figures": 1, "scene_figures": 1, "all": 1, **ROUGHNESS}
+DOWNSTREAM = {
+    "training": 1, "labels": 1, "summary": 1, "classification_figures": 1, "scene_figures": 1, "all": 1,
+    "calibration_diagnostics": 1, **ROUGHNESS,
+}
 
 
 def snakemake(workdir, *args, config=(), overrides=None, snakefile=REPO / "Snakefile"):
@@ -76,7 +79,7 @@ def test_every_store_follows_the_contract(done):
             "aoi": {"aoi", "distance"},
             "reflectance": {"reflectance"},
             "registered": {"reflectance", "aoi"},
-            "features": {"R0", "n", "variability"},
+            "features": {"R0", "n", "variability", "R0_uncertainty", "n_uncertainty"},
         }
         for stage, variables in expected.items():
             ds = xr.open_zarr(processed / stage / f"{name}.zarr")
@@ -88,6 +91,13 @@ def test_every_store_follows_the_contract(done):
         assert list(xr.open_zarr(processed / "aoi" / f"{name}.zarr")["view"].values) == list(item.view_stems)
         assert xr.open_zarr(processed / "aoi" / f"{name}.zarr")["aoi"].attrs["units"] == "rad"
         assert (done / "logs" / "features" / f"{name}.log").is_file()
+        features = xr.open_zarr(processed / "features" / f"{name}.zarr")
+        for var in ("R0_uncertainty", "n_uncertainty"):
+            assert features[var].attrs["units"] == "1"
+            uncertainty = features[var].values
+            assert (uncertainty[np.isfinite(uncertainty)] >= 0).all()
+            assert np.isfinite(uncertainty).mean() > 0.5
+        assert "uncertainty_propagation" in features.attrs
     training = xr.open_zarr(processed / "training.zarr")
     assert list(training["feature"].values) == ["R0", "n", "variability"]
     assert set(training["class"].values) == {"S1", "S2", "S3", "S4"}
@@ -96,6 +106,9 @@ def test_every_store_follows_the_contract(done):
         assert labels[var].dtype == np.int16
         assert labels[var].attrs["flag_values"] == [0, 1, 2, 3]
         assert labels[var].attrs["flag_meanings"] == "S1 S2 S3 S4"
+        # every unclassified pixel is counted under one reason, before and after the filter
+        assert sum(labels[var].attrs["unclassified"].values()) == int((labels[var] == -1).sum())
+    assert labels.attrs["surffin_parameters"]["max_uncertainty"] == {"R0": 0.03, "n": 0.08}
     summary = json.loads((processed / "summary.json").read_text())
     assert set(summary["items"]) == set(camp.items)
     assert summary["items"]["S1"]["region"] == "roi" and summary["items"]["T1"]["region"] == "image"
@@ -105,6 +118,9 @@ def test_every_store_follows_the_contract(done):
     relation = json.loads((processed / "roughness" / "relation.json").read_text())
     assert set(relation["specimens"]) == {"S1", "S2", "S3", "S4"}
     assert relation["slope"] < 0  # the tiny preset's plaster: n falls with roughness
+    diagnostics = json.loads((processed / "diagnostics" / "calibration.json").read_text())
+    assert diagnostics["repeatability"]["available"]  # the tiny preset renders a repeat calibration set
+    assert 0 < diagnostics["calibrations"]["first"]["fit"]["mean_r2"] <= 1
     rough = xr.open_zarr(processed / "roughness" / "T1.zarr")
     assert rough["roughness"].attrs["units"] == "mm" and "indicative" in rough.attrs["comment"]
     assert rough.attrs["surffin_stage"] == "roughness"
@@ -117,13 +133,15 @@ def test_nothing_left_after_a_complete_run(done):
 def test_smoothing_change_reruns_features_and_below_only(done):
     jobs = planned_jobs(done, overrides={"features": {"smoothing": 5}})
     figures = {"item_figures": 5, "classification_figures": 1, "scene_figures": 1}
-    assert jobs == {"features": 5, "training": 1, "labels": 1, "summary": 1, "all": 1, **figures, **ROUGHNESS}
+    assert jobs == {"features": 5, "training": 1, "labels": 1, "summary": 1, "all": 1, **figures, **ROUGHNESS,
+                    "calibration_diagnostics": 1}
 
 
 def test_aoi_window_change_reruns_from_aoi_down(done):
     jobs = planned_jobs(done, overrides={"aoi": {"window": 11, "jump": 0.16}})
     downstream = {"aoi", "reflectance", "registration", "features", "training", "labels", "summary", "all"}
-    assert set(jobs) == downstream | {"item_figures", "classification_figures", "scene_figures", *ROUGHNESS}
+    assert set(jobs) == downstream | {"item_figures", "classification_figures", "scene_figures", *ROUGHNESS,
+                                      "calibration_diagnostics"}
     assert jobs["aoi"] == 5
 
 
@@ -133,7 +151,8 @@ def test_code_version_bump_reruns_that_stage(done, tmp_path):
     for part in ("Snakefile", "workflow", "config"):
         (shutil.copytree if (REPO / part).is_dir() else shutil.copy)(REPO / part, copy / part)
     common = copy / "workflow" / "rules" / "common.smk"
-    common.write_text(common.read_text().replace('"labels": 1,', '"labels": 2,'))
+    # one more than whatever the labels stage's version is now
+    common.write_text(re.sub(r'"labels": (\d+),', lambda m: f'"labels": {int(m[1]) + 1},', common.read_text(), count=1))
     jobs = planned_jobs(done, snakefile=copy / "Snakefile")
     assert jobs == {"labels": 1, "summary": 1, "classification_figures": 1, "scene_figures": 1, "all": 1}
 

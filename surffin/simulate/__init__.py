@@ -29,6 +29,7 @@ _LAZY = {
     "cli_parser": "command",
     "cli_run": "command",
     "Acquisition": "plan",
+    "REPEAT_FOLDERS": "plan",
     "plan_campaign": "plan",
     "PRESETS": "presets",
     "Preset": "presets",

@@ -3,7 +3,10 @@
 :func:`simulate_campaign` renders the acquisitions of
 :func:`~surffin.simulate.plan.plan_campaign` one view at a time, writes them as
 a campaign (CAMPAIGN.md layout) and, outside it, the truth stores of
-:mod:`~surffin.simulate.truth`; ``campaign.yaml`` comes last.
+:mod:`~surffin.simulate.truth`; ``campaign.yaml`` comes last. The repeat
+calibration set (``Preset.repeat_calibration``) is written into its own folders
+(:data:`~surffin.simulate.plan.REPEAT_FOLDERS`), which ``campaign.yaml`` does not
+name: it is no view of any item, only a second calibration of the same camera.
 """
 
 from __future__ import annotations
@@ -56,6 +59,17 @@ def _roi(acquisition: Acquisition, reference: Geometry, margin: float) -> dict[s
     face = [face.name for face in acquisition.faces].index(acquisition.roi_face)
     mask = (reference.face == face) & (reference.edge_distance >= margin)
     return _inscribed_roi(mask, f"{acquisition.folder} ({acquisition.roi_face})")
+
+
+def _check_repeat_panel(acquisition: Acquisition, reference: Geometry, roi: dict[str, list[int]]) -> None:
+    """Refuse a repeat panel pose from which the panel does not fill the roi of ``campaign.yaml``."""
+    face = [face.name for face in acquisition.faces].index(acquisition.roi_face)
+    rows, columns = slice(*roi["y"]), slice(*roi["x"])
+    if not (reference.face[rows, columns] == face).all():
+        raise CampaignError(
+            f"{acquisition.folder}: the reference panel does not fill the roi {roi} in the repeat calibration "
+            f"views; lower the preset's repeat_shift, repeat_turn or roll"
+        )
 
 
 def _file_names(acquisition: Acquisition, fmt: str) -> list[str]:
@@ -287,7 +301,12 @@ def simulate_campaign(
         "scenes": {},
     }
     for acquisition in plan:
-        entry = _describe(acquisition, _acquire(acquisition, run), run)
+        reference = _acquire(acquisition, run)
+        if acquisition.repeat:
+            if acquisition.kind == "reference":
+                _check_repeat_panel(acquisition, reference, config["calibration"]["reference"]["roi"])
+            continue
+        entry = _describe(acquisition, reference, run)
         if acquisition.kind in ("wall", "reference"):
             config["calibration"].update(entry)
         else:

@@ -10,7 +10,11 @@ from surffin.simulate.camera import look_at_pose
 from surffin.simulate.presets import Preset, Specimen
 from surffin.simulate.scene import Face, box_faces, keyed_rng, plane_face
 
-__all__ = ["Acquisition", "plan_campaign"]
+__all__ = ["REPEAT_FOLDERS", "Acquisition", "plan_campaign"]
+
+#: Folders of the repeat calibration set (relative to the campaign directory), which
+#: ``campaign.yaml`` does not name: a second calibration of the same camera, for repeatability.
+REPEAT_FOLDERS = {"wall": "calibration/repeat/wall", "reference": "calibration/repeat/spectralon"}
 
 _GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 # World X, Y of the specimens' places on the board (specimen k at
@@ -43,6 +47,9 @@ class Acquisition:
     roi_face : str or None
         Name of the face whose pixels in the reference view make the roi
         (specimens and the reference panel).
+    repeat : bool
+        Part of the repeat calibration set (wall or reference panel views):
+        written to its folder, but not named in ``campaign.yaml``.
     """
 
     name: str
@@ -54,6 +61,7 @@ class Acquisition:
     digits: int = 2
     specimen: Specimen | None = None
     roi_face: str | None = None
+    repeat: bool = False
 
     @property
     def stems(self) -> list[str]:
@@ -71,31 +79,60 @@ def _rolls(preset: Preset, seed: int, name: str, count: int) -> np.ndarray:
     return np.deg2rad(keyed_rng(seed, "roll", name).uniform(-preset.roll, preset.roll, count))
 
 
-def _wall(preset: Preset, seed: int) -> Acquisition:
-    """One view per (distance, tilt) of the design, aimed at random wall points, golden-angle azimuths."""
-    design = [(distance, tilt) for distance in preset.wall_distances for tilt in preset.wall_tilts]
+def _wall(preset: Preset, seed: int, repeat: bool = False) -> Acquisition:
+    """One view per (distance, tilt) of the design, aimed at random wall points, golden-angle azimuths.
+
+    The repeat set (``repeat``) moves each view of the first set: the target by
+    up to ``repeat_shift`` along each wall axis, the distance by up to
+    ``repeat_shift``, the tilt and azimuth by up to ``repeat_turn``, with rolls
+    of its own.
+    """
+    name = "repeat-wall" if repeat else "wall"
+    design = np.array([(distance, tilt) for distance in preset.wall_distances for tilt in preset.wall_tilts])
     targets = keyed_rng(seed, "targets", "wall").uniform(-preset.wall_spread, preset.wall_spread, (len(design), 2))
-    rolls = _rolls(preset, seed, "wall", len(design))
+    azimuths = np.arange(len(design)) * _GOLDEN_ANGLE
+    if repeat:
+        move = keyed_rng(seed, "move", name).uniform(-1.0, 1.0, (len(design), 5))
+        targets = targets + preset.repeat_shift * move[:, :2]
+        design = design + move[:, 2:4] * (preset.repeat_shift, preset.repeat_turn)
+        azimuths = azimuths + np.deg2rad(preset.repeat_turn) * move[:, 4]
+    rolls = _rolls(preset, seed, name, len(design))
     poses = tuple(
-        look_at_pose((x, y, 0.0), distance, np.deg2rad(tilt), index * _GOLDEN_ANGLE, roll)
-        for index, ((distance, tilt), (x, y), roll) in enumerate(zip(design, targets, rolls))
+        look_at_pose((x, y, 0.0), distance, np.deg2rad(tilt), azimuth, roll)
+        for (distance, tilt), (x, y), azimuth, roll in zip(design, targets, azimuths, rolls)
     )
     digits = max(3, len(str(len(poses) - 1)))
     faces = (plane_face("wall", preset.wall),)
-    return Acquisition("wall", "wall", "calibration/wall", faces, poses, prefix="w", digits=digits)
+    folder = REPEAT_FOLDERS["wall"] if repeat else "calibration/wall"
+    return Acquisition(name, "wall", folder, faces, poses, prefix="w", digits=digits, repeat=repeat)
 
 
-def _reference(preset: Preset) -> Acquisition:
-    """The panel on the wall, fronto-parallel, all views from one pose (the panel on the same pixels)."""
+def _reference(preset: Preset, seed: int, repeat: bool = False) -> Acquisition:
+    """The panel on the wall, fronto-parallel, all views from one pose (the panel on the same pixels).
+
+    The repeat set's pose is up to ``repeat_shift`` closer, tilted by up to
+    ``repeat_turn`` (random azimuth) and rolled by up to ``roll``, still aimed
+    at the panel's centre: the panel only grows and turns a little in the
+    image, so the roi of ``campaign.yaml`` stays on it.
+    """
     faces = (
         plane_face("wall", preset.wall),
         *box_faces("panel", (0.0, 0.0), preset.panel_size, preset.panel_thickness, 0.0, preset.reference, -1),
     )
-    pose = look_at_pose((0.0, 0.0, -preset.panel_thickness), preset.reference_distance, 0.0, 0.0)
+    target = (0.0, 0.0, -preset.panel_thickness)
+    name, folder, pose = "reference", "calibration/reference", look_at_pose(target, preset.reference_distance, 0.0, 0.0)
+    if repeat:
+        closer, tilt, azimuth, roll = keyed_rng(seed, "move", "repeat-reference").uniform(0.0, 1.0, 4)
+        name, folder = "repeat-reference", REPEAT_FOLDERS["reference"]
+        pose = look_at_pose(
+            target,
+            preset.reference_distance - preset.repeat_shift * closer,
+            np.deg2rad(preset.repeat_turn * tilt),
+            2.0 * np.pi * azimuth,
+            np.deg2rad(preset.roll * (2.0 * roll - 1.0)),
+        )
     poses = tuple(pose.copy() for _ in range(preset.reference_views))
-    return Acquisition(
-        "reference", "reference", "calibration/reference", faces, poses, prefix="r", roi_face="panel.top"
-    )
+    return Acquisition(name, "reference", folder, faces, poses, prefix="r", roi_face="panel.top", repeat=repeat)
 
 
 def _orbit(preset: Preset, seed: int, name: str, target, distance: float, tilts, turn: float) -> tuple:
@@ -162,6 +199,12 @@ def plan_campaign(preset: Preset, seed: int) -> list[Acquisition]:
         presets, in rows of two, rotated in-plane by ``preset.scene_rotations``).
         Specimen and scene views look at the centre of their top faces, with
         azimuths following the golden angle from a different start per item.
+        Last, when ``preset.repeat_calibration``, the repeat calibration set:
+        the wall and the panel again from slightly different poses, into
+        :data:`REPEAT_FOLDERS`.
     """
     specimens = [_specimen(preset, seed, index) for index in range(len(preset.specimens))]
-    return [_wall(preset, seed), _reference(preset), *specimens, _scene(preset, seed)]
+    plan = [_wall(preset, seed), _reference(preset, seed), *specimens, _scene(preset, seed)]
+    if preset.repeat_calibration:
+        plan += [_wall(preset, seed, repeat=True), _reference(preset, seed, repeat=True)]
+    return plan

@@ -148,6 +148,17 @@ class Preset:
         Fronto-parallel distance of the reference views.
     reference_views : int
         Number of reference views (all from the same pose).
+    repeat_calibration : bool
+        Also render a second calibration set of the same camera, wall and
+        panel (same design, slightly different poses, its own noise) into
+        folders that ``campaign.yaml`` does not name
+        (:data:`~surffin.simulate.plan.REPEAT_FOLDERS`), for repeatability.
+    repeat_shift : float, metres
+        Largest change of a repeat wall view's target (along each wall axis)
+        and distance; the repeat panel views come up to this much closer.
+    repeat_turn : float, degrees
+        Largest change of a repeat wall view's tilt and azimuth, and tilt of
+        the repeat panel views.
     board : Material
         Background of the specimens (class -1).
     specimens : tuple of Specimen
@@ -193,6 +204,9 @@ class Preset:
     panel_thickness: float = 0.005
     reference_distance: float = 0.5
     reference_views: int = 3
+    repeat_calibration: bool = True
+    repeat_shift: float = 0.03
+    repeat_turn: float = 3.0
     board: Material = _board(grain_length=0.001)
     specimens: tuple[Specimen, ...] = _plasters(grain_length=0.001)
     specimen_size: float = 0.10

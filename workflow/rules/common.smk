@@ -7,6 +7,7 @@ from snakemake.utils import validate
 
 import surffin
 import surffin.roughness
+from surffin.calibration import calibration_set
 from surffin.errors import SurffinError
 
 
@@ -34,6 +35,7 @@ STAGE_VERSION = {
     "figures": 1,
     "roughness": 1,
     "sensitivity": 1,
+    "diagnostics": 1,
 }
 
 
@@ -57,6 +59,22 @@ def load_campaign():
 
 CAMP = load_campaign()
 CALIBRATION = config["calibration_store"] or f"{PROCESSED}/calibration.zarr"
+
+
+def load_repeat_calibration():
+    """The repeat calibration set, checked, when config names its folders and the campaign has them; else None."""
+    folders = config["calibration_repeat"]
+    if folders is None or CAMP.calibration is None:
+        return None
+    if not all((CAMP.root / folder).is_dir() for folder in folders.values()):
+        return None
+    try:
+        return calibration_set(CAMP, folders["wall"], folders["reference"])
+    except SurffinError as exc:
+        raise WorkflowError(str(exc)) from None
+
+
+REPEAT = load_repeat_calibration()
 
 
 wildcard_constraints:
@@ -100,15 +118,18 @@ def registration_params(wildcards):
     return {"method": config["registration"]["method"], "roi": roi_of(wildcards.item)}
 
 
-def feature_params(wildcards):
+def feature_settings():
     features = config["features"]
     return {
-        "roi": roi_of(wildcards.item),
         "size": features["smoothing"],
         "variability_size": features["variability_window"],
         "min_views": features["min_views"],
         "min_spread": math.radians(features["min_aoi_spread_deg"]),
     }
+
+
+def feature_params(wildcards):
+    return {"roi": roi_of(wildcards.item), **feature_settings()}
 
 
 def calibration_views(wildcards):
@@ -119,6 +140,43 @@ def calibration_views(wildcards):
 def calibration_settings(wildcards):
     ref = CAMP.calibration.reference
     return {"reflectance": ref.reflectance, "roi": {"y": list(ref.roi.y), "x": list(ref.roi.x)}}
+
+
+def repeat_calibration_views(wildcards):
+    if REPEAT is None:
+        raise WorkflowError(
+            f"no repeat calibration set in {CAMPAIGN}: calibration_repeat is null or names folders the campaign lacks"
+        )
+    return [str(path) for path in (*REPEAT.wall, *REPEAT.reference.views)]
+
+
+def repeat_calibration_store(wildcards):
+    """The repeat calibration store when there is a repeat set; else none (the diagnostics say why)."""
+    return [] if REPEAT is None else f"{PROCESSED}/diagnostics/calibration-repeat.zarr"
+
+
+def diagnostics_views(wildcards):
+    """The campaign's wall views and the specimens' views that the calibration diagnostics read."""
+    wall = () if CAMP.calibration is None else CAMP.calibration.wall
+    return [str(path) for path in (*wall, *(view for item in CAMP.specimens.values() for view in item.views))]
+
+
+def diagnostics_settings(wildcards):
+    """The crop and the specimens' rois and reference views: a change reruns the diagnostics."""
+    return {
+        "crop": {"y": list(CAMP.crop.y), "x": list(CAMP.crop.x)},
+        "specimens": {name: {"roi": roi_of(name), "reference": item.reference} for name, item in CAMP.specimens.items()},
+    }
+
+
+def diagnostics_item_params(wildcards):
+    """The registration, AOI and feature parameters the diagnostics process the specimens with."""
+    return {
+        "method": config["registration"]["method"],
+        "window": config["aoi"]["window"],
+        "jump": config["aoi"]["jump"],
+        **feature_settings(),
+    }
 
 
 def features_of(names):

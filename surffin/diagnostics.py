@@ -1,0 +1,809 @@
+"""Calibration diagnostics as the paper reports them (section 3.3, Table 2), and repeatability.
+
+From a calibration store (:func:`surffin.calibration.calibrate`), over the
+campaign's crop (the pixels the method uses):
+
+- fit quality: mean R^2 over the fitted pixels (paper 0.98);
+- variability of each coefficient across the image, in %: ``100 std / |mean|``
+  (``plain``: the coefficient of variation, which is how the paper's
+  "variability in % over the whole image" reads) and ``100 * 1.4826 MAD /
+  |median|`` (``robust``: the same for a normal distribution, but blind to the
+  few pixels whose fit is poorly constrained, which inflate the plain one; the
+  two differ where such outliers matter). Paper: A 8.94, B 3.92, C 1.79,
+  D 1.38, E 4.44 %, in a gauge it does not state; here E = 1, so E's
+  variability is 0 and A, B, C, D carry E's;
+- the correlation matrix of the coefficients across pixels (Pearson, paper
+  Table 2; C-D -0.99). It mixes the true spatial patterns of the coefficients
+  with the fits' estimation errors, which are strongly correlated between C
+  and D;
+- the feature spread on the calibration wall: the calibrated reflectance of
+  every wall view, then R0, n fitted per sensor pixel over the wall views (the
+  wall is uniform and Lambertian, so one pixel sees one reflectance law in all
+  of them), and their standard deviation and robust spread across pixels
+  (paper: 0.005 and 0.008). Every wall set is analysed with every calibration,
+  and ``views_in_fit`` says how many of its views that calibration was fitted
+  to (from the file checksums the store records): on its own views a
+  calibration has absorbed their noise (in-sample, as in the paper), so the
+  spread is honest only on other views, e.g. the repeat set's.
+
+Repeatability, given a second calibration store fitted to a repeat acquisition
+of the same wall and panel: relative differences between the two of the
+coefficients, of the scale k, of the instrument function f and of the whole
+calibration k f over the observed (d, theta) range, of the reflectance and
+features R0, n of the wall views, and of the specimens' registered
+reflectance and features (each specimen processed with each calibration by
+:func:`surffin.stages.process_item`). Paper: coefficients within 1 %,
+reflectance 2.9 %, R0 0.5 %, n 1.4 %.
+
+A relative difference is ``(a - b) / ((a + b) / 2)`` per pixel (and view, or
+(d, theta) grid point), in %, except for the coefficients: ``(a - b) / |mean|``
+with the term's mean over the image (C and D come near zero on pixels where
+their estimation noise is large). Each is summarised by the median of its
+absolute value (the headline), its mean (the systematic part), its standard
+deviation and the 95th percentile of its absolute value: the paper does not
+say which statistic its numbers are.
+
+Given the simulator's instrument truth (``<campaign>-truth/instrument.zarr``,
+in the same gauge E = 1), each calibration is compared with it the same way,
+and the truth's own variability and correlation are reported beside.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import xarray as xr
+
+from surffin.calibration import TERMS, _observe, _with_reflectance, calibration_diagnostics, instrument_function
+from surffin.errors import StoreError
+from surffin.scattering import DEFAULT_MIN_SPREAD, fit_scattering
+
+if TYPE_CHECKING:
+    from surffin.campaign import Campaign, Roi
+
+__all__ = [
+    "PAPER",
+    "variability",
+    "spread",
+    "relative_difference",
+    "coefficient_statistics",
+    "observed_grid",
+    "compare_calibrations",
+    "wall_features",
+    "process_specimens",
+    "plot_correlation",
+    "plot_repeatability",
+    "run_calibration_diagnostics",
+    "CORRELATION_FIGURE",
+    "REPEATABILITY_FIGURE",
+]
+
+log = logging.getLogger("surffin")
+
+#: What the paper reports (section 3.3, Table 2): mean R^2, variability (%), the correlation matrix
+#: (terms A..E), the spread of R0 and n on the wall, and the repeatability (%) of two calibrations.
+PAPER = {
+    "mean_r2": 0.98,
+    "variability_percent": {"A": 8.94, "B": 3.92, "C": 1.79, "D": 1.38, "E": 4.44},
+    "correlation": {
+        "terms": list(TERMS),
+        "matrix": [
+            [1.0, 0.14, 0.16, -0.12, -0.16],
+            [0.14, 1.0, 0.17, -0.14, -0.46],
+            [0.16, 0.17, 1.0, -0.99, 0.09],
+            [-0.12, -0.14, -0.99, 1.0, -0.13],
+            [-0.16, -0.46, 0.09, -0.13, 1.0],
+        ],
+    },
+    "wall_feature_std": {"R0": 0.005, "n": 0.008},
+    "repeatability_percent": {"coefficients": 1.0, "reflectance": 2.9, "R0": 0.5, "n": 1.4},
+}
+
+# Scale factor of the median absolute deviation to a normal standard deviation.
+_MAD_SIGMA = 1.4826
+# Percentiles of the wall observations' distance and AOI that bound the (d, theta) grid, and its size.
+_GRID_PERCENTILES = (1, 99)
+_GRID_SIZE = 7
+# Most points drawn per scatter panel.
+_MAX_POINTS = 4000
+#: File names of the figures of :func:`run_calibration_diagnostics` in its ``figures_dir``.
+CORRELATION_FIGURE = "calibration_correlation.png"
+REPEATABILITY_FIGURE = "calibration_repeatability.png"
+# Variables of the specimens compared between calibrations.
+_SPECIMEN_VARIABLES = ("reflectance", "R0", "n", "R0_fit", "n_fit")
+
+
+def _plain(value):
+    """``value`` with numpy types as Python ones and non-finite floats as None (strict JSON)."""
+    if isinstance(value, Mapping):
+        return {str(key): _plain(item) for key, item in value.items()}
+    if isinstance(value, list | tuple | np.ndarray):
+        return [_plain(item) for item in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
+def _format(value: float | None) -> str:
+    """A number for the log (``n/a`` for None)."""
+    return "n/a" if value is None else f"{value:.4g}"
+
+
+def _robust_std(values: np.ndarray, axis=None) -> np.ndarray:
+    """1.4826 times the median absolute deviation (a normal standard deviation), NaN-aware."""
+    median = np.nanmedian(values, axis=axis, keepdims=True)
+    return _MAD_SIGMA * np.nanmedian(np.abs(values - median), axis=axis)
+
+
+def variability(values) -> dict[str, np.ndarray]:
+    """Relative spread in % of each row of ``values``, ignoring NaN.
+
+    Parameters
+    ----------
+    values : (k, n) array_like
+        k quantities (e.g. the coefficients A..E) over n pixels.
+
+    Returns
+    -------
+    dict
+        ``plain``: ``100 std / |mean|``; ``robust``: ``100 * 1.4826 MAD /
+        |median|``; each (k,) ndarray (inf or NaN where the mean or median is 0).
+    """
+    values = np.asarray(values, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return {
+            "plain": 100.0 * np.nanstd(values, axis=1) / np.abs(np.nanmean(values, axis=1)),
+            "robust": 100.0 * _robust_std(values, axis=1) / np.abs(np.nanmedian(values, axis=1)),
+        }
+
+
+def spread(values) -> dict[str, float | int | None]:
+    """Mean, standard deviation, median and robust standard deviation of the finite values.
+
+    Returns
+    -------
+    dict
+        ``n_pixels``, ``mean``, ``std``, ``median``, ``robust_std`` (1.4826
+        MAD) and ``relative_std`` (std / |mean|); None without a finite value.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    values = values[np.isfinite(values)]
+    if values.size == 0:
+        return {"n_pixels": 0, "mean": None, "std": None, "median": None, "robust_std": None, "relative_std": None}
+    mean, std = float(values.mean()), float(values.std())
+    return {
+        "n_pixels": int(values.size),
+        "mean": mean,
+        "std": std,
+        "median": float(np.median(values)),
+        "robust_std": float(_robust_std(values)),
+        "relative_std": std / abs(mean) if mean else None,
+    }
+
+
+def relative_difference(a, b, scale: float | None = None) -> dict[str, float | int | None]:
+    """Summary of the relative differences ``(a - b) / ((a + b) / 2)``, in %, where both are finite.
+
+    Parameters
+    ----------
+    a, b : array_like
+        Two estimates of the same quantities (broadcast against each other).
+    scale : float, optional
+        Divide by ``|scale|`` instead of each pair's mean: for quantities
+        whose values may come near zero (a coefficient that is small against
+        its spread), relative to their size over the image.
+
+    Returns
+    -------
+    dict
+        ``n`` (pairs), ``median_abs_percent`` (the headline),
+        ``mean_percent`` (the systematic part), ``std_percent``,
+        ``p95_abs_percent``; None without a finite pair.
+    """
+    a, b = np.broadcast_arrays(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = 200.0 * (a - b) / (a + b) if scale is None else 100.0 * (a - b) / abs(scale)
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return {"n": 0, "median_abs_percent": None, "mean_percent": None, "std_percent": None, "p95_abs_percent": None}
+    return {
+        "n": int(d.size),
+        "median_abs_percent": float(np.median(np.abs(d))),
+        "mean_percent": float(d.mean()),
+        "std_percent": float(d.std()),
+        "p95_abs_percent": float(np.percentile(np.abs(d), 95)),
+    }
+
+
+def _coefficients(ds: xr.Dataset, region: Roi | None) -> np.ndarray:
+    """(5, pixels) coefficients of the region (all pixels of the store when None), row-major."""
+    coef = ds["coef"].transpose("term", "y", "x")
+    if region is not None:
+        coef = coef.isel(y=slice(*region.y), x=slice(*region.x))
+    return np.asarray(coef.values, dtype=np.float64).reshape(len(TERMS), -1)
+
+
+def coefficient_statistics(calibration: xr.Dataset, region: Roi | None = None) -> dict:
+    """Fit quality, variability and correlation of the coefficients across the pixels of ``region``.
+
+    Parameters
+    ----------
+    calibration : Dataset
+        A calibration store (``coef``, ``r2``, ``status``) on the full sensor.
+    region : Roi, optional
+        Sensor pixels to cover (the campaign's crop); default: all.
+
+    Returns
+    -------
+    dict
+        ``fit``: ``mean_r2`` (paper 0.98), ``median_r2``, ``n_fitted``,
+        ``n_pixels`` and ``status_counts`` over the region, ``sensor_mean_r2``
+        over the whole sensor; ``variability_percent``: ``plain`` and
+        ``robust`` (:func:`variability` of the fitted pixels), term -> %;
+        ``correlation``: ``terms`` (those that vary) and ``matrix`` (Pearson,
+        across the fitted pixels).
+    """
+    ds = calibration[["coef", "r2", "status"]].load()
+    local = ds if region is None else ds.isel(y=slice(*region.y), x=slice(*region.x))
+    table = calibration_diagnostics(local)
+    fitted = (local["status"] == 0).values.ravel()
+    spreads = variability(_coefficients(local, None)[:, fitted])
+    return {
+        "fit": {
+            **{key: table[key] for key in ("mean_r2", "median_r2", "n_fitted", "n_pixels", "status_counts")},
+            "sensor_mean_r2": calibration_diagnostics(ds)["mean_r2"],
+        },
+        "variability_percent": {kind: dict(zip(TERMS, values)) for kind, values in spreads.items()},
+        "correlation": {"terms": table["correlation_terms"], "matrix": table["correlation"]},
+    }
+
+
+def observed_grid(calibration: xr.Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """A (distance, AOI) grid over the central 98 % of a calibration's wall observations (``wall_obs``).
+
+    Returns
+    -------
+    distance, aoi : (7, 7) ndarray
+        Metres and radians.
+
+    """
+    obs = calibration["wall_obs"]
+    axes = [
+        np.linspace(*np.nanpercentile(obs.sel(quantity=quantity).values, _GRID_PERCENTILES), _GRID_SIZE)
+        for quantity in ("distance", "aoi")
+    ]
+    return tuple(np.meshgrid(*axes, indexing="ij"))
+
+
+def compare_calibrations(first: xr.Dataset, second: xr.Dataset, grid, region: Roi | None = None) -> dict:
+    """Relative differences of two calibrations of one sensor (:func:`relative_difference`, first vs second).
+
+    Parameters
+    ----------
+    first, second : Dataset
+        ``coef`` (term, y, x) in the gauge E = 1 and attr ``scale_k``: two
+        calibration stores, or one and the simulator's instrument truth.
+    grid : (distance, aoi) pair of array_like
+        Where f and k f are compared: metres and radians, broadcasting together.
+    region : Roi, optional
+        Sensor pixels to cover; default: all.
+
+    Returns
+    -------
+    dict
+        ``n_pixels`` (fitted in both); ``coefficients`` (A..D -> summary of
+        the differences relative to the term's mean over the pixels and both
+        calibrations, ``|a1 - a2| / |mean|``: C and D are small against their
+        estimation noise on some pixels; E is 1 in both); ``scale_k`` (both, and their difference in %);
+        ``instrument_function`` (f over those pixels and the grid) with
+        ``median_pixel_max_abs_percent`` (median over pixels of the largest
+        |difference| on the grid); ``calibration`` (k f, the whole
+        calibration: the reflectance of the same data differs as much, with
+        the opposite sign).
+    """
+    a, b = _coefficients(first, region), _coefficients(second, region)
+    both = np.isfinite(a).all(axis=0) & np.isfinite(b).all(axis=0)
+    a, b = a[:, both, None], b[:, both, None]
+    ka, kb = float(first.attrs["scale_k"]), float(second.attrs["scale_k"])
+    distance, aoi = (np.ravel(part) for part in np.broadcast_arrays(*grid))
+    fa, fb = instrument_function(a, distance, aoi), instrument_function(b, distance, aoi)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        worst = np.abs(200.0 * (fa - fb) / (fa + fb))
+    return {
+        "n_pixels": int(both.sum()),
+        "coefficients": {
+            term: relative_difference(a[index], b[index], 0.5 * (a[index].mean() + b[index].mean()))
+            for index, term in enumerate(TERMS[:4])
+        },
+        "scale_k": {"first": ka, "second": kb, "difference_percent": 200.0 * (ka - kb) / (ka + kb)},
+        "instrument_function": {
+            **relative_difference(fa, fb),
+            "median_pixel_max_abs_percent": float(np.median(worst.max(axis=1))) if worst.size else None,
+        },
+        "calibration": relative_difference(ka * fa, kb * fb),
+    }
+
+
+def _truth_statistics(truth: xr.Dataset, region: Roi | None) -> dict:
+    """Variability and correlation of the true coefficients (gauge E = 1) across the region."""
+    coef = _coefficients(truth, region)
+    varying = [index for index in range(len(TERMS)) if np.std(coef[index]) > 0]
+    return {
+        "variability_percent": {kind: dict(zip(TERMS, values)) for kind, values in variability(coef).items()},
+        "correlation": {"terms": [TERMS[index] for index in varying], "matrix": np.corrcoef(coef[varying])},
+    }
+
+
+def _calibration_window(calibration: xr.Dataset, path) -> tuple[int, float]:
+    """The AOI window and jump a calibration store was fitted with (its provenance)."""
+    parameters = calibration.attrs.get("surffin_parameters", {})
+    if "window" not in parameters or "jump" not in parameters:
+        raise StoreError(
+            f"{path}: the calibration store does not record its AOI window and jump (surffin_parameters); refit it "
+            f"with this surffin"
+        )
+    return int(parameters["window"]), float(parameters["jump"])
+
+
+def wall_features(
+    campaign: Campaign,
+    views: Sequence[str | os.PathLike],
+    calibrations: Mapping[str, xr.Dataset],
+    *,
+    window: int,
+    jump: float,
+    min_views: int = 2,
+    min_spread: float = DEFAULT_MIN_SPREAD,
+) -> tuple[xr.Dataset, xr.Dataset]:
+    """Calibrated reflectance of wall views with each calibration, and R0, n fitted per sensor pixel over them.
+
+    Each view is read and its AOI and distance computed on the full sensor
+    (:mod:`surffin.geometry`, as the calibration does), then cropped to the
+    campaign's crop. A sensor pixel sees the same uniform wall in every view,
+    so its reflectances over the views follow one scattering law, fitted by
+    :func:`surffin.scattering.fit_scattering`.
+
+    Parameters
+    ----------
+    campaign : Campaign
+    views : sequence of path-like
+        Wall view files.
+    calibrations : mapping of str to Dataset
+        Name -> calibration (``coef`` (term, y, x) on the full sensor, attr ``scale_k``).
+    window, jump
+        AOI plane-fit window and depth-jump threshold (those of the calibration).
+    min_views, min_spread
+        Of :func:`~surffin.scattering.fit_scattering`.
+
+    Returns
+    -------
+    observed : Dataset
+        ``reflectance`` (calibration, view, y, x), ``aoi`` (view, y, x,
+        radians), float32, NaN where unusable.
+    fits : Dataset
+        ``R0``, ``n`` (calibration, y, x).
+    """
+    rows, columns = campaign.crop.slices
+    names = list(calibrations)
+    coefs = [calibrations[name]["coef"].transpose("term", "y", "x").values[:, rows, columns] for name in names]
+    scales = [float(calibrations[name].attrs["scale_k"]) for name in names]
+    shape = (len(views), *campaign.crop.shape)
+    reflectance = np.empty((len(names), *shape), dtype=np.float32)
+    aoi = np.empty(shape, dtype=np.float32)
+    for index, path in enumerate(views):
+        view = _observe(campaign, path, window, jump)
+        values = np.stack([view.intensity, view.distance, view.aoi])[:, rows, columns]
+        values[:, ~view.valid[rows, columns]] = np.nan
+        aoi[index] = values[2]
+        for which, (coef, scale) in enumerate(zip(coefs, scales)):
+            reflectance[which, index] = _with_reflectance(values, coef, scale, axis=0)[3]
+    coords = {
+        "calibration": names,
+        "view": [Path(path).stem for path in views],
+        "y": np.arange(*campaign.crop.y),
+        "x": np.arange(*campaign.crop.x),
+    }
+    observed = xr.Dataset(
+        {
+            "reflectance": (("calibration", "view", "y", "x"), reflectance, {"units": "1"}),
+            "aoi": (("view", "y", "x"), aoi, {"units": "rad"}),
+        },
+        coords=coords,
+    )
+    fits = [
+        fit_scattering(observed["reflectance"].sel(calibration=name), observed["aoi"], min_views=min_views,
+                       min_spread=min_spread)[["R0", "n"]]
+        for name in names
+    ]
+    return observed, xr.concat(fits, dim="calibration").assign_coords(calibration=names)
+
+
+def process_specimens(
+    campaign: Campaign, calibrations: Mapping[str, xr.Dataset], params: Mapping | None = None
+) -> dict[str, dict[str, xr.Dataset]]:
+    """Each specimen processed with each calibration (:func:`surffin.stages.process_item`), in memory.
+
+    Parameters
+    ----------
+    campaign : Campaign
+    calibrations : mapping of str to Dataset
+        Name -> calibration.
+    params : mapping, optional
+        ``method`` (registration) and the stage parameters of
+        :func:`~surffin.stages.process_item` (``window``, ``jump``, ``size``,
+        ``variability_size``, ``min_views``, ``min_spread``).
+
+    Returns
+    -------
+    dict
+        Specimen -> calibration name -> Dataset over the specimen's roi (the
+        whole crop without one): ``reflectance`` (view, y, x) registered onto
+        the reference view, the features ``R0``, ``n`` (smoothed) and the
+        unsmoothed fits ``R0_fit``, ``n_fit`` (y, x).
+    """
+    from surffin.features import select_roi
+    from surffin.ingest import ingest_item
+    from surffin.stages import process_item
+
+    params = dict(params or {})
+    out = {}
+    for name, item in campaign.specimens.items():
+        ingest = ingest_item(campaign, name)
+        out[name] = {}
+        for which, calibration in calibrations.items():
+            done = process_item(ingest, calibration, roi=item.roi, **params)
+            both = xr.merge(
+                [done["registered"][["reflectance"]], done["features"][["R0", "n", "R0_fit", "n_fit"]]],
+                compat="override",
+                combine_attrs="drop",
+            )
+            out[name][which] = (both if item.roi is None else select_roi(both, item.roi)).compute()
+        log.info("diagnostics: specimen %s processed with each calibration (%s)", name, ", ".join(calibrations))
+    return out
+
+
+def _specimen_differences(processed: Mapping[str, Mapping[str, xr.Dataset]], first: str, second: str) -> dict:
+    """Relative differences of the specimens' reflectance and features, pooled and per specimen."""
+    pooled = {name: ([], []) for name in _SPECIMEN_VARIABLES}
+    items = {}
+    for item, runs in processed.items():
+        items[item] = {}
+        for name in _SPECIMEN_VARIABLES:
+            a, b = runs[first][name].values.ravel(), runs[second][name].values.ravel()
+            pooled[name][0].append(a)
+            pooled[name][1].append(b)
+            items[item][name] = relative_difference(a, b)
+    return {
+        **{
+            name: relative_difference(np.concatenate(a or [np.empty(0)]), np.concatenate(b or [np.empty(0)]))
+            for name, (a, b) in pooled.items()
+        },
+        "items": items,
+    }
+
+
+# --- figures ------------------------------------------------------------------------------------
+
+
+def plot_correlation(tables: Mapping[str, Mapping], path: str | os.PathLike) -> Path:
+    """Heat maps of correlation matrices of the calibration coefficients (paper Table 2), side by side.
+
+    Parameters
+    ----------
+    tables : mapping
+        Panel title -> ``{"terms": [...], "matrix": [[...]]}``; terms absent
+        from a matrix (E in the gauge E = 1) are drawn grey.
+    path : path-like
+        The image to write.
+
+    Returns
+    -------
+    Path
+    """
+    from surffin.figures import _colormap, _figure, _save
+
+    fig = _figure(3.9 * len(tables) + 1.2, 4.6)
+    axes = fig.subplots(1, len(tables), squeeze=False)[0]
+    for ax, (title, table) in zip(axes, tables.items()):
+        full = np.full((len(TERMS), len(TERMS)), np.nan)
+        index = [TERMS.index(term) for term in table["terms"]]
+        full[np.ix_(index, index)] = np.asarray(table["matrix"], dtype=np.float64)
+        shown = ax.imshow(full, cmap=_colormap("RdBu_r"), vmin=-1.0, vmax=1.0)
+        for (row, column), value in np.ndenumerate(full):
+            if np.isfinite(value):
+                colour = "white" if abs(value) > 0.6 else "black"
+                ax.text(column, row, f"{value:.2f}", ha="center", va="center", fontsize=9, color=colour)
+        ax.set_xticks(range(len(TERMS)), TERMS)
+        ax.set_yticks(range(len(TERMS)), TERMS)
+        ax.set_title(title, fontsize=10)
+    fig.colorbar(shown, ax=axes, label="correlation across pixels", shrink=0.85)
+    fig.suptitle("Correlation of the calibration coefficients of f = (A + B/d²)(Cθ² + Dθ + E) (paper Table 2; "
+                 "grey: E = 1 does not vary)")
+    return _save(fig, path)
+
+
+def _scatter_panel(ax, title: str, groups: Mapping[str, tuple], names: tuple[str, str], scale=None) -> None:
+    """Second estimates against first of each group (subsampled), a 1:1 line, the pooled median |difference|.
+
+    ``scale`` as in :func:`relative_difference`.
+    """
+    from surffin.figures import _subsample
+
+    x_all = np.concatenate([np.ravel(x) for x, _ in groups.values()])
+    y_all = np.concatenate([np.ravel(y) for _, y in groups.values()])
+    for label, (x, y) in groups.items():
+        x, y = np.ravel(x), np.ravel(y)
+        finite = np.flatnonzero(np.isfinite(x) & np.isfinite(y))
+        shown = finite[_subsample(finite.size, _MAX_POINTS // len(groups))]
+        ax.scatter(x[shown], y[shown], s=4, alpha=0.4, label=label)
+    finite = np.isfinite(x_all) & np.isfinite(y_all)
+    if finite.any():
+        low, high = np.percentile(np.concatenate([x_all[finite], y_all[finite]]), (0.5, 99.5))
+        ax.plot([low, high], [low, high], color="red", linewidth=1)
+        ax.set_xlim(low, high)
+        ax.set_ylim(low, high)
+    median = relative_difference(x_all, y_all, scale)["median_abs_percent"]
+    ax.set_title(title if median is None else f"{title}\nmedian |relative difference| {median:.3g} %", fontsize=10)
+    ax.set_xlabel(f"with the {names[0]} calibration")
+    ax.set_ylabel(f"with the {names[1]} calibration")
+    ax.grid(True, alpha=0.3)
+    if len(groups) > 1:
+        ax.legend(fontsize=8, markerscale=3)
+
+
+def plot_repeatability(
+    first: xr.Dataset,
+    second: xr.Dataset,
+    specimens: Mapping[str, Mapping[str, xr.Dataset]],
+    names: tuple[str, str],
+    path: str | os.PathLike,
+    *,
+    region: Roi | None = None,
+) -> Path:
+    """The second calibration's estimates against the first's: coefficients A..D and the specimens' R0, n.
+
+    Parameters
+    ----------
+    first, second : Dataset
+        The two calibrations (``coef``).
+    specimens : mapping
+        Of :func:`process_specimens`, with both calibrations.
+    names : (str, str)
+        Keys of the two calibrations in ``specimens``.
+    path : path-like
+    region : Roi, optional
+        Sensor pixels of the coefficients drawn; default: all.
+
+    Returns
+    -------
+    Path
+    """
+    from surffin.figures import _figure, _save
+
+    fig = _figure(15.0, 9.5)
+    axes = fig.subplots(2, 3).ravel()
+    a, b = _coefficients(first, region), _coefficients(second, region)
+    for index, term in enumerate(TERMS[:4]):
+        scale = 0.5 * (np.nanmean(a[index]) + np.nanmean(b[index]))
+        _scatter_panel(axes[index], f"coefficient {term}, per pixel", {"pixels": (a[index], b[index])}, names, scale)
+    for ax, feature in zip(axes[4:], ("R0", "n")):
+        if not specimens:
+            ax.set_axis_off()
+            ax.text(0.5, 0.5, f"no specimens: no {feature} to compare", ha="center", va="center")
+            continue
+        groups = {item: (runs[names[0]][feature].values, runs[names[1]][feature].values)
+                  for item, runs in specimens.items()}
+        _scatter_panel(ax, f"specimens' {feature} (smoothed, roi pixels)", groups, names)
+    fig.suptitle(f"Repeatability: estimates with the {names[1]} calibration against those with the {names[0]} "
+                 f"(red: equal)")
+    return _save(fig, path)
+
+
+# --- entry point ----------------------------------------------------------------------------------
+
+
+def _repeat_reason(campaign: Campaign, repeat_folders: Mapping[str, str] | None) -> str:
+    """Why there is no repeatability part."""
+    if repeat_folders is None:
+        return "turned off: no repeat calibration folders configured (calibration_repeat: null)"
+    if campaign.calibration is None:
+        return f"{campaign.path} has no calibration section (the reference panel's reflectance and roi)"
+    missing = sorted(folder for folder in repeat_folders.values() if not (campaign.root / folder).is_dir())
+    if missing:
+        return f"the campaign {campaign.root} has no repeat calibration set (no folders {missing})"
+    return "no repeat calibration store given"
+
+
+def _wall_sets(campaign: Campaign, calibrations: Mapping[str, xr.Dataset]) -> dict[str, tuple[Path, ...]]:
+    """Wall folder (relative) -> view files: the campaign's calibration wall and the calibrations' own walls."""
+    from surffin.viewfile import list_views
+
+    sets = {}
+    if campaign.calibration is not None:
+        wall = campaign.calibration.wall
+        sets[str(wall[0].parent.relative_to(campaign.root))] = wall
+    for calibration in calibrations.values():
+        folder = (calibration.attrs.get("calibration_set") or {}).get("wall")
+        if folder is not None and folder not in sets and (campaign.root / folder).is_dir():
+            sets[folder] = tuple(list_views(campaign.root / folder))
+    return sets
+
+
+def _wall_report(camp: Campaign, calibrations: Mapping[str, xr.Dataset], item_params: Mapping, window, jump):
+    """Feature spread of every wall set with every calibration, and the wall repeatability of two calibrations."""
+    from surffin.ingest import describe_file
+
+    spreads, repeatability = [], []
+    fit_options = {key: item_params[key] for key in ("min_views", "min_spread") if key in item_params}
+    for folder, views in _wall_sets(camp, calibrations).items():
+        described = {str(Path(path).relative_to(camp.root)): describe_file(path) for path in views}
+        observed, fits = wall_features(camp, views, calibrations, window=window, jump=jump, **fit_options)
+        for name, calibration in calibrations.items():
+            inputs = calibration.attrs.get("surffin_inputs", {})
+            in_fit = sum(inputs.get(relative) == description for relative, description in described.items())
+            fit = fits.sel(calibration=name)
+            spreads.append(
+                {"calibration": name, "wall": folder, "views": len(views), "views_in_fit": in_fit,
+                 "R0": spread(fit["R0"].values), "n": spread(fit["n"].values)}
+            )
+            log.info("diagnostics: wall %s with %s (%d of %d views in its fit): std of R0 %s, of n %s", folder, name,
+                     in_fit, len(views), _format(spreads[-1]["R0"]["std"]), _format(spreads[-1]["n"]["std"]))
+        if len(calibrations) == 2:
+            pairs = {"reflectance": observed["reflectance"], "R0": fits["R0"], "n": fits["n"]}
+            differences = {
+                name: relative_difference(*both.transpose("calibration", ...)) for name, both in pairs.items()
+            }
+            repeatability.append({"wall": folder, **differences})
+    return spreads, repeatability
+
+
+def run_calibration_diagnostics(
+    output_json: str | os.PathLike,
+    *,
+    calibration: str | os.PathLike,
+    repeat: str | os.PathLike | None = None,
+    campaign: str | os.PathLike,
+    repeat_folders: Mapping[str, str] | None = None,
+    item_params: Mapping | None = None,
+    instrument_truth: str | os.PathLike | None = None,
+    figures_dir: str | os.PathLike | None = None,
+    log_path: str | os.PathLike | None = None,
+) -> Path:
+    """Write the calibration diagnostics of a campaign as JSON (and figures).
+
+    Parameters
+    ----------
+    output_json : path-like
+        Written atomically.
+    calibration : path-like
+        The calibration store.
+    repeat : path-like, optional
+        A second calibration store of the same camera, fitted to a repeat
+        acquisition (:func:`surffin.pipeline.run_calibration` with
+        ``folders``); without it the repeatability part is left out, and the
+        JSON (``repeatability.reason``) and the log say why.
+    campaign : path-like
+        The campaign directory: its wall views (wall features) and specimens
+        (repeatability of their reflectance and features).
+    repeat_folders : mapping, optional
+        The configured ``{"wall", "reference"}`` folders of the repeat set,
+        used only to explain a missing ``repeat``.
+    item_params : mapping, optional
+        Registration ``method`` and the stage parameters of the specimens
+        (:func:`process_specimens`); ``min_views`` and ``min_spread`` also
+        serve the wall feature fits.
+    instrument_truth : path-like, optional
+        The simulator's ``instrument.zarr``: each calibration is compared with it.
+    figures_dir : path-like, optional
+        Folder of ``calibration_correlation.png`` (heat maps: the calibration,
+        the repeat, the truth, the paper) and ``calibration_repeatability.png``
+        (scatter plots, or a note saying why there are none).
+    log_path : path-like, optional
+        The job's log file.
+
+    Returns
+    -------
+    Path
+        ``output_json``: the sections ``calibrations`` (per store:
+        :func:`coefficient_statistics`, ``scale_k``, ``calibration_set``),
+        ``wall_features`` (per wall set and calibration: :func:`spread` of R0
+        and n, ``views_in_fit``), ``repeatability`` (``available``,
+        ``reason``; :func:`compare_calibrations`, ``wall`` and ``specimens``
+        relative differences), ``truth`` (when given) and ``paper``
+        (:data:`PAPER`).
+    """
+    from surffin.campaign import read_campaign
+    from surffin.figures import _message
+    from surffin.pipeline import check_calibration, logging_to
+    from surffin.store import open_store
+    from surffin.viewfile import write_atomically
+
+    item_params = dict(item_params or {})
+    with logging_to(log_path):
+        camp = read_campaign(campaign, require_calibration=False)
+        stores = {"first": calibration, **({} if repeat is None else {"repeat": repeat})}
+        calibrations = {}
+        for name, path in stores.items():
+            check_calibration(path, camp)
+            ds = open_store(path, stage="calibration")
+            if "wall_obs" not in ds:
+                raise StoreError(f"{path}: the calibration store keeps no wall observations (wall_obs); refit it "
+                                 f"with this surffin")
+            calibrations[name] = ds[["coef", "r2", "status", "wall_obs"]].load()
+        window, jump = _calibration_window(calibrations["first"], calibration)
+        region = camp.crop
+        report = {
+            "campaign": str(camp.root),
+            "region": {"name": "crop", "y": list(region.y), "x": list(region.x)},
+            "inputs": {name: None if path is None else str(path)
+                       for name, path in (("calibration", calibration), ("repeat", repeat),
+                                          ("instrument_truth", instrument_truth))},
+            "calibrations": {},
+        }
+        for name, cal in calibrations.items():
+            stats = coefficient_statistics(cal, region)
+            report["calibrations"][name] = {
+                "store": str(stores[name]),
+                "calibration_set": cal.attrs.get("calibration_set"),
+                "scale_k": float(cal.attrs["scale_k"]),
+                **stats,
+            }
+            log.info("diagnostics: %s: mean R2 %.4f over the crop; variability %% plain %s, robust %s", name,
+                     stats["fit"]["mean_r2"], _plain(stats["variability_percent"]["plain"]),
+                     _plain(stats["variability_percent"]["robust"]))
+        spreads, wall_repeatability = _wall_report(camp, calibrations, item_params, window, jump)
+        report["wall_features"] = spreads
+        grid = observed_grid(calibrations["first"])
+        tables = {f"{name} calibration, crop": report["calibrations"][name]["correlation"] for name in calibrations}
+        if instrument_truth is not None:
+            truth = open_store(instrument_truth).load()
+            report["truth"] = {
+                **_truth_statistics(truth, region),
+                **{name: compare_calibrations(cal, truth, grid, region) for name, cal in calibrations.items()},
+            }
+            tables["simulator truth, crop"] = report["truth"]["correlation"]
+        tables["paper Table 2"] = PAPER["correlation"]
+        if repeat is None:
+            reason = _repeat_reason(camp, repeat_folders)
+            log.info("diagnostics: no repeatability: %s", reason)
+            report["repeatability"] = {"available": False, "reason": reason}
+        else:
+            processed = process_specimens(camp, calibrations, item_params)
+            report["repeatability"] = {
+                "available": True,
+                "reason": None,
+                **compare_calibrations(calibrations["first"], calibrations["repeat"], grid, region),
+                "wall": wall_repeatability,
+                "specimens": _specimen_differences(processed, "first", "repeat"),
+            }
+            summary = report["repeatability"]
+            log.info(
+                "diagnostics: repeatability (median |relative difference|, %%): coefficients %s, k f %s, specimens' "
+                "reflectance %s, R0 %s, n %s",
+                {term: _format(value["median_abs_percent"]) for term, value in summary["coefficients"].items()},
+                *(_format(part["median_abs_percent"]) for part in (summary["calibration"], *(
+                    summary["specimens"][name] for name in ("reflectance", "R0", "n")))),
+            )
+        report["paper"] = PAPER
+        if figures_dir is not None:
+            figures = Path(figures_dir)
+            plot_correlation(tables, figures / CORRELATION_FIGURE)
+            if repeat is None:
+                _message(figures / REPEATABILITY_FIGURE, "Repeatability of the calibration",
+                         f"no repeatability: {report['repeatability']['reason']}")
+            else:
+                plot_repeatability(calibrations["first"], calibrations["repeat"], processed, ("first", "repeat"),
+                                   figures / REPEATABILITY_FIGURE, region=region)
+        output = Path(output_json)
+        output.parent.mkdir(parents=True, exist_ok=True)
+        write_atomically(output, (json.dumps(_plain(report), indent=2, allow_nan=False) + "\n").encode())
+        log.info("diagnostics: wrote %s", output)
+        return output
