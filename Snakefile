@@ -15,6 +15,7 @@ include: "workflow/rules/classify.smk"
 include: "workflow/rules/roughness.smk"
 include: "workflow/rules/report.smk"
 include: "workflow/rules/sensitivity.smk"
+include: "workflow/rules/reproduction.smk"
 
 
 rule all:
@@ -26,4 +27,5 @@ rule all:
         expand(rules.item_figures.output.features, item=CAMP.items),
         expand(rules.scene_figures.output.labels, scene=CAMP.scenes),
         rules.sensitivity.output,
+        rules.paper_comparison.output,
     default_target: True

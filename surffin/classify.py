@@ -11,7 +11,16 @@ keeps scale 1). The standardisation is stored in the training set
 stored samples whenever it is needed: nothing is pickled.
 
 :func:`classify` predicts every pixel with a k-nearest-neighbour classifier
-(the paper: k = 1); :func:`filter_labels` then removes isolated errors. The
+(the paper: k = 1), or leaves it unclassified (-1) instead of guessing: when a
+feature is missing, when the standard uncertainty of its smoothed R0 or n
+(:func:`surffin.features.features`) exceeds a bound, or when its features lie
+farther from every training sample than a fraction of
+:func:`class_separation`, the distance between the two closest classes (a
+surface unlike every specimen, such as the board the specimens lie on); the
+label image counts these pixels by reason. :func:`filter_labels` then removes
+isolated errors among the classified pixels: unclassified pixels neither vote
+nor receive a class, so the filter never fills in a pixel the classifier
+declined (the unclassified pixels are the same before and after it). The
 paper's median filter on class indices depends on the (arbitrary, here
 alphabetical) order of the classes: a window with 10 votes for class 0, 5 for
 class 1 and 10 for class 2 becomes class 1, the least frequent, because its
@@ -32,14 +41,16 @@ import xarray as xr
 
 from surffin.campaign import Roi
 from surffin.errors import SurffinError
-from surffin.features import _check_grid, _check_size, _image_filter, select_roi
+from surffin.features import UNCERTAINTY, _check_grid, _check_size, _image_filter, select_roi
 
 __all__ = [
     "FEATURES",
     "UNCLASSIFIED",
+    "UNCLASSIFIED_REASONS",
     "training_set",
     "combine_training",
     "fit_classifier",
+    "class_separation",
     "classify",
     "filter_labels",
     "score",
@@ -48,8 +59,10 @@ __all__ = [
 
 #: Feature variables of a features Dataset, in the order of the training set's ``feature`` axis.
 FEATURES = ("R0", "n", "variability")
-#: Label of a pixel with no class (a feature is missing).
+#: Label of a pixel with no class (a feature is missing, too uncertain, or unlike every class).
 UNCLASSIFIED = -1
+#: Why :func:`classify` leaves a pixel unclassified, in the order the checks apply.
+UNCLASSIFIED_REASONS = ("missing_feature", "uncertainty_unknown", "uncertainty_above_bound", "far_from_training")
 _UNCLASSIFIED_NAME = "(unclassified)"
 _FILTERS = ("median", "majority")
 
@@ -267,40 +280,166 @@ def _label_attrs(classes: Sequence[str]) -> dict:
         "long_name": "surface finish class",
         "flag_values": list(range(len(classes))),
         "flag_meanings": " ".join(classes),
-        "comment": f"{UNCLASSIFIED} = unclassified (a feature is missing)",
+        "comment": (
+            f"{UNCLASSIFIED} = unclassified: a feature is missing, too uncertain, or far from every "
+            "training sample (counts by reason in attr unclassified)"
+        ),
     }
 
 
-def classify(features: xr.Dataset, training: xr.Dataset, *, k: int = 1, n_jobs: int | None = None) -> xr.DataArray:
-    """Class of every pixel of a feature image by k-nearest neighbours.
+def class_separation(training: xr.Dataset) -> float:
+    """Smallest distance between the medians of two classes in the standardised feature space.
+
+    Parameters
+    ----------
+    training : Dataset
+        Output of :func:`training_set` or :func:`combine_training`.
+
+    Returns
+    -------
+    float
+        ``min |m_a - m_b|`` over pairs of classes, with ``m`` the per-feature
+        median of a class's standardised samples ``(features - feature_mean) /
+        feature_std``: the distance the k-NN classifier must resolve between
+        its two closest classes.
+
+    Raises
+    ------
+    ValueError
+        The training set has fewer than two classes.
+    """
+    classes = list(training.attrs["classes"])
+    if len(classes) < 2:
+        raise ValueError(f"class separation needs at least two classes, the training set has {classes}")
+    values = np.asarray(training["features"].transpose("sample", "feature").values, dtype=np.float64)
+    standard = _standardise(values, training["feature_mean"].values, training["feature_std"].values)
+    names = np.array(_names(training["class"].values))
+    medians = np.stack([np.median(standard[names == name], axis=0) for name in classes])
+    distances = np.linalg.norm(medians[:, None] - medians[None], axis=-1)
+    return float(distances[np.triu_indices(len(classes), 1)].min())
+
+
+def _check_fraction(name: str, value) -> float | None:
+    if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Real) or not value > 0):
+        raise ValueError(f"{name} must be a positive fraction of the class separation or None, got {value!r}")
+    return None if value is None else float(value)
+
+
+def _uncertainty_bounds(max_uncertainty: float | None, training: xr.Dataset, separation: float) -> dict[str, float | None]:
+    """The bound of each feature with an uncertainty, in its units (None: no bound).
+
+    ``max_uncertainty * separation`` in standardised units, i.e. times the
+    feature's standard deviation over the training samples.
+    """
+    if max_uncertainty is None:
+        return dict.fromkeys(UNCERTAINTY)
+    std = dict(zip(_names(training["feature"].values), training["feature_std"].values.tolist()))
+    return {name: max_uncertainty * separation * std[name] for name in UNCERTAINTY}
+
+
+def _uncertainty_flags(features: xr.Dataset, bounds: Mapping[str, float | None]) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (row-major) whose bounded uncertainty is unknown (NaN), and those above its bound."""
+    pixels = features.sizes["y"] * features.sizes["x"]
+    unknown, above = np.zeros(pixels, dtype=bool), np.zeros(pixels, dtype=bool)
+    for name, bound in bounds.items():
+        if bound is None:
+            continue
+        variable = f"{name}_uncertainty"
+        if variable not in features:
+            raise ValueError(
+                f"features lack {variable}, needed by the bound max_uncertainty; "
+                "recompute the features store with this surffin, or drop the bound"
+            )
+        _check_grid(features[variable], variable)
+        values = np.asarray(features[variable].transpose("y", "x").values, dtype=np.float64).ravel()
+        unknown |= np.isnan(values)
+        above |= values > bound
+    return unknown, above
+
+
+def classify(
+    features: xr.Dataset,
+    training: xr.Dataset,
+    *,
+    k: int = 1,
+    n_jobs: int | None = None,
+    max_uncertainty: float | None = None,
+    max_distance: float | None = None,
+) -> xr.DataArray:
+    """Class of every pixel of a feature image by k-nearest neighbours, or unclassified.
 
     Parameters
     ----------
     features : Dataset (y, x)
-        With :data:`FEATURES` (output of :func:`surffin.features.features`).
+        With :data:`FEATURES` (output of :func:`surffin.features.features`),
+        and ``R0_uncertainty``, ``n_uncertainty`` when ``max_uncertainty`` is given.
     training : Dataset
         Output of :func:`training_set` or :func:`combine_training`.
     k : int, default 1
         Number of neighbours.
     n_jobs : int, optional
         Parallel jobs of the neighbour search.
+    max_uncertainty : float, optional
+        Largest standard uncertainty of the smoothed R0 and n, as a fraction
+        of :func:`class_separation` in standardised units (so, for each
+        feature, that fraction of the separation times the feature's standard
+        deviation over the training samples): the bound follows the classes
+        to be told apart, whatever the camera and the specimens. A pixel whose
+        uncertainty exceeds its bound, or is unknown (NaN), is unclassified
+        rather than guessed. None: no bound.
+    max_distance : float, optional
+        Largest distance from a pixel's standardised features to the nearest
+        training sample, as a fraction of :func:`class_separation`; farther
+        pixels (surfaces unlike every class, such as the board the specimens
+        lie on) are unclassified. None: every pixel gets the nearest class.
 
     Returns
     -------
     (y, x) DataArray of int16
         Class index into ``training.attrs["classes"]`` (sorted class names),
-        -1 where any feature is NaN; CF attrs ``flag_values`` (0..K-1) and
-        ``flag_meanings`` (the class names, space-separated). Computed eagerly:
-        all finite pixels are predicted at once.
+        -1 where unclassified; CF attrs ``flag_values`` (0..K-1) and
+        ``flag_meanings`` (the class names, space-separated); ``k``,
+        ``max_uncertainty``, ``uncertainty_bounds`` (per feature, its units),
+        ``max_distance``, ``distance_bound`` (the bound in standardised units,
+        when ``max_distance`` is given), ``class_separation`` and
+        ``unclassified``: the number of pixels left unclassified for each of
+        :data:`UNCLASSIFIED_REASONS`, each pixel counted for the first reason
+        that applies. Computed eagerly: all pixels are predicted at once.
     """
     model = fit_classifier(training, k, n_jobs=n_jobs)
-    values, finite = _feature_matrix(features)
+    max_uncertainty = _check_fraction("max_uncertainty", max_uncertainty)
+    max_distance = _check_fraction("max_distance", max_distance)
+    separation = class_separation(training) if (max_uncertainty, max_distance) != (None, None) else None
+    bounds = _uncertainty_bounds(max_uncertainty, training, separation)
+    values, keep = _feature_matrix(features)
+    unclassified = dict.fromkeys(UNCLASSIFIED_REASONS, 0)
+    unclassified["missing_feature"] = int((~keep).sum())
+    unknown, above = _uncertainty_flags(features, bounds)
+    for reason, flagged in (("uncertainty_unknown", unknown), ("uncertainty_above_bound", above)):
+        unclassified[reason] = int((keep & flagged).sum())
+        keep &= ~flagged
+    extra = {} if separation is None else {"class_separation": separation}
+    if max_distance is not None:
+        extra["distance_bound"] = max_distance * separation
+        if keep.any():
+            standard, neighbours = model[0].transform(values[keep]), model[-1]
+            far = neighbours.kneighbors(standard, 1)[0][:, 0] > extra["distance_bound"]
+            unclassified["far_from_training"] = int(far.sum())
+            keep[np.flatnonzero(keep)[far]] = False
     labels = np.full(values.shape[0], UNCLASSIFIED, dtype=np.int16)
-    if finite.any():
-        labels[finite] = model.predict(values[finite])
+    if keep.any():
+        labels[keep] = model.predict(values[keep])
     shape = (features.sizes["y"], features.sizes["x"])
     out = xr.DataArray(labels.reshape(shape), dims=("y", "x"), coords={"y": features["y"], "x": features["x"]})
-    out.attrs = {**_label_attrs(list(training.attrs["classes"])), "k": int(k)}
+    out.attrs = {
+        **_label_attrs(list(training.attrs["classes"])),
+        "k": int(k),
+        "max_uncertainty": max_uncertainty,
+        "uncertainty_bounds": bounds,
+        "max_distance": max_distance,
+        **extra,
+        "unclassified": unclassified,
+    }
     return out
 
 
@@ -345,8 +484,10 @@ def filter_labels(label: xr.DataArray, *, kind: str = "median", size: int = 5) -
     (..., y, x) DataArray of int16
         Filtered labels, attrs of ``label``. Unclassified pixels (-1) and
         pixels outside the image do not vote, and unclassified pixels stay
-        unclassified: the filter never invents a class where a feature is
-        missing. Lazy on dask input.
+        unclassified: the filter never invents a class where :func:`classify`
+        declined one (a missing feature, too uncertain, far from the training
+        set), so the counts of its ``unclassified`` attr hold for the filtered
+        image too. Lazy on dask input.
     """
     if kind not in _FILTERS:
         raise ValueError(f"kind must be one of {_FILTERS}, got {kind!r}")

@@ -1,4 +1,4 @@
-"""Feature images of an item: smoothed R0 and n, and the reflectance variability (method step 5).
+"""Feature images of an item (method step 5): smoothed R0 and n, their uncertainties, the variability.
 
 All three features are neighbourhood operations on (y, x) images that ignore
 missing (NaN) pixels:
@@ -29,6 +29,58 @@ missing (NaN) pixels:
   reference grid averages neighbouring pixels and lowers their spread, so the
   variability is computed before the warp and warped afterwards (METHOD.md).
 
+Uncertainty of the smoothed R0 and n (:func:`smooth_uncertainty`). The
+smoothed value is ``sum w_i v_i / sum w_i`` over the finite pixels i of the
+window, and the fit gives each pixel a standard uncertainty s_i (``R0_sigma``,
+``n_sigma``: the fit covariance scaled by the residual variance). With
+independent errors the smoothed value's uncertainty would be
+``sqrt(sum w_i^2 s_i^2) / sum w_i``; with fully correlated errors it is
+``sum w_i s_i / sum w_i``. Neither holds: the AOI comes from overlapping
+plane-fit windows (15 x 15 px), registration interpolates, the calibration
+is spatially smooth. Between the two, with a correlation rho(d) of the errors
+of two pixels d apart, the variance is F times the independent one, with the
+variance inflation factor ``F = sum_ij w_i w_j rho(i - j) / sum_i w_i^2``
+(:func:`variance_inflation`; 1 for independent errors, 23.6 for fully
+correlated ones under the 7 x 7 kernel): the window holds
+``(sum w)^2 / (F sum w^2)`` effectively independent pixels. rho is measured on
+the item itself, as the spatial correlation of the fit's residuals pooled over
+the views (:func:`residual_correlation`): the residuals are the part of the
+per-view errors the fit does not absorb and share their spatial structure.
+The uncertainty is ``sqrt(F sum w_i^2 s_i^2) / sum w_i``, at most the fully
+correlated bound. The s_i^2 of a 5-view fit have only 3 degrees of freedom;
+the window pools them (a pixel fitted from 2 views, whose s_i is unknown,
+takes the window's mean variance) into about 37 degrees of freedom under the
+7 x 7 kernel, so the smoothed uncertainty covers nearly like a normal (exact
+variances would give 0.676 and 0.947 within 1 and 2). F is computed for the
+full kernel and used near holes and borders too.
+
+Measured on the paper preset (``benchmarks/bench_uncertainty.py``; errors
+against the truth smoothed the same way, pixels at least ``label_margin``
+from the edges of surfaces; shares within 1 and 2 uncertainties, 0.683 and
+0.954 when calibrated):
+
+========================  ===========================  ===========================
+propagation               R0 (S1..S4, T1)              n (S1..S4, T1)
+========================  ===========================  ===========================
+independent (F = 1)       0.30-0.37, 0.55-0.65         0.25-0.31, 0.46-0.57
+fully correlated bound    0.90-0.95, 0.99-1.00         0.82-0.90, 0.99
+residual correlation      0.69-0.77, 0.94-0.97         0.59-0.69, 0.89-0.94
+========================  ===========================  ===========================
+
+Independent errors understate the uncertainty 2.1-2.6x (R0) and 2.5-3.2x (n),
+the bound overstates it 1.4-2.1x; the residual correlation (F = 6.8-8.2,
+2.9-3.5 effective pixels of the 23.6 of the kernel) is within about 20 % of the
+measured errors (the spread of error / uncertainty is 0.80-0.97 for R0 and
+0.96-1.21 for n): the choice here. The correlation of the true errors gives
+F = 6.2-6.4 for R0 and 8.2-8.6 for n on the specimens; the residuals' one
+parameter-blind value lies between, so n is slightly understated. The
+per-pixel fit sigma itself is calibrated for its degrees of freedom: 0.58-0.60
+and 0.83-0.85 of the pixels lie within 1 and 2 sigma, against 0.59-0.60 and
+0.84 expected from Student's t with each pixel's m - 2 degrees of freedom
+(0.61 and 0.86 at 5 views, 0.50 and 0.70 at 3): below the normal's shares
+because s^2 is estimated from 1-3 residual degrees of freedom, not because it
+is wrong on average.
+
 Under dask every operation runs chunk by chunk with ``dask.array.map_overlap``:
 each chunk gets a halo of ``size // 2`` pixels from its neighbours and NaN
 outside the image, which the kernels treat exactly like the zero border they
@@ -52,8 +104,12 @@ __all__ = [
     "DEFAULT_SIZE",
     "DEFAULT_MIN_FRACTION",
     "QUALITY",
+    "UNCERTAINTY",
     "gaussian_sigma",
     "smooth",
+    "smooth_uncertainty",
+    "residual_correlation",
+    "variance_inflation",
     "local_std",
     "select_roi",
     "most_perpendicular_view",
@@ -68,6 +124,10 @@ DEFAULT_SIZE = 7
 DEFAULT_MIN_FRACTION = 0.25
 #: Per-pixel quality variables of a scattering fit passed through by :func:`features`.
 QUALITY = ("R0_sigma", "n_sigma", "rms", "n_views", "status")
+#: Smoothed feature -> the fit's standard uncertainty it is propagated from (:func:`features`).
+UNCERTAINTY = {"R0": "R0_sigma", "n": "n_sigma"}
+# Residuals beyond this many robust standard deviations are outliers in residual_correlation.
+_RESIDUAL_CLIP = 5.0
 
 
 def _check_size(size) -> int:
@@ -89,6 +149,17 @@ def gaussian_sigma(size: int) -> float:
     ``sigma = 0.3 ((size - 1) / 2 - 1) + 0.8``; 1.4 px for ``size = 7``.
     """
     return 0.3 * ((_check_size(size) - 1) / 2 - 1) + 0.8
+
+
+def _smoothing(size, sigma, min_weight=None) -> tuple[int, float, np.ndarray]:
+    """Checked window side, Gaussian sigma (default: :func:`gaussian_sigma`) and 1-D weights of a smoothing."""
+    size = _check_size(size)
+    sigma = gaussian_sigma(size) if sigma is None else float(sigma)
+    if not sigma > 0:
+        raise ValueError(f"sigma must be positive (pixels), got {sigma!r}")
+    if min_weight is not None and not 0 < min_weight <= 1:
+        raise ValueError(f"min_weight must be in (0, 1] (share of the kernel mass), got {min_weight!r}")
+    return size, sigma, _gaussian_weights(size, sigma)
 
 
 def _gaussian_weights(size: int, sigma: float) -> np.ndarray:
@@ -128,57 +199,68 @@ def _local_std_image(image: np.ndarray, size: int, ddof: int, min_count: int) ->
     return np.sqrt(np.maximum(out, 0.0))
 
 
-def _per_image(data: np.ndarray, kernel, out_dtype, **kwargs) -> np.ndarray:
-    """``kernel`` applied to every (y, x) image of ``data`` (..., y, x), into an array of ``out_dtype``."""
-    out = np.empty(data.shape, dtype=out_dtype)
-    if data.size:
-        for index in np.ndindex(data.shape[:-2]):
-            out[index] = kernel(data[index], **kwargs)
+def _per_image(*data: np.ndarray, kernel, out_dtype, **kwargs) -> np.ndarray:
+    """``kernel`` applied to every (y, x) image of the arrays ``data`` (..., y, x) of one shape.
+
+    The kernel takes one image of each array, in order, and returns one image
+    of ``out_dtype``.
+    """
+    out = np.empty(data[0].shape, dtype=out_dtype)
+    if data[0].size:
+        for index in np.ndindex(data[0].shape[:-2]):
+            out[index] = kernel(*(part[index] for part in data), **kwargs)
     return out
 
 
-def _over_images(data, kernel, radius: int, boundary, dtype, **kwargs):
-    """:func:`_per_image` on a numpy array, or lazily on a dask array with a halo of ``radius``.
+def _over_images(*data, kernel, radius: int, boundary, dtype, **kwargs):
+    """:func:`_per_image` on numpy arrays, or lazily on dask arrays with a halo of ``radius``.
 
     ``boundary`` is the value outside the image that the kernel treats as missing
     (NaN for measurements, -1 for labels), so a chunk's halo beyond the image
-    border changes nothing.
+    border changes nothing. Several dask arrays are cut into the chunks of the first.
     """
-    if isinstance(data, np.ndarray):
-        return _per_image(data, kernel, dtype, **kwargs)
+    if all(isinstance(part, np.ndarray) for part in data):
+        return _per_image(*data, kernel=kernel, out_dtype=dtype, **kwargs)
     import dask.array as da
 
-    image_axes = (data.ndim - 2, data.ndim - 1)
+    first = da.asarray(data[0])
+    image_axes = (first.ndim - 2, first.ndim - 1)
     # an image axis no longer than the halo is taken whole; one in a single chunk needs no halo
-    data = data.rechunk({axis: -1 for axis in image_axes if data.shape[axis] <= radius})
-    halo = [axis for axis in image_axes if len(data.chunks[axis]) > 1]
-    depth = {axis: radius if axis in halo else 0 for axis in range(data.ndim)}
-    bounds = {axis: boundary if axis in halo else "none" for axis in range(data.ndim)}
+    first = first.rechunk({axis: -1 for axis in image_axes if first.shape[axis] <= radius})
+    data = [first, *(da.asarray(part).rechunk(first.chunks) for part in data[1:])]
+    halo = [axis for axis in image_axes if len(first.chunks[axis]) > 1]
+    depth = {axis: radius if axis in halo else 0 for axis in range(first.ndim)}
+    bounds = {axis: boundary if axis in halo else "none" for axis in range(first.ndim)}
     return da.map_overlap(
         _per_image,
-        data,
+        *data,
         depth=depth,
         boundary=bounds,
         dtype=dtype,
-        meta=np.empty((0,) * data.ndim, dtype=dtype),
+        meta=np.empty((0,) * first.ndim, dtype=dtype),
         kernel=kernel,
         out_dtype=dtype,
         **kwargs,
     )
 
 
-def _image_filter(arr: xr.DataArray, kernel, radius: int, boundary, dtype, **kwargs) -> xr.DataArray:
-    """Apply an image kernel over the (y, x) plane of ``arr``, any other dims looped, lazily on dask."""
+def _image_filter(arr, kernel, radius: int, boundary, dtype, **kwargs) -> xr.DataArray:
+    """Apply an image kernel over the (y, x) plane, any other dims looped, lazily on dask.
+
+    ``arr`` is one DataArray or a sequence of DataArrays on one grid whose
+    images the kernel takes together; the result has the dims of the first.
+    """
+    arrays = [arr] if isinstance(arr, xr.DataArray) else list(arr)
     out = xr.apply_ufunc(
         _over_images,
-        arr,
-        input_core_dims=[["y", "x"]],
+        *arrays,
+        input_core_dims=[["y", "x"]] * len(arrays),
         output_core_dims=[["y", "x"]],
         kwargs={"kernel": kernel, "radius": radius, "boundary": boundary, "dtype": dtype, **kwargs},
         dask="allowed",
         keep_attrs=False,
     )
-    return out.transpose(*arr.dims)
+    return out.transpose(*arrays[0].dims)
 
 
 def _as_float(arr: xr.DataArray, name: str) -> xr.DataArray:
@@ -215,23 +297,233 @@ def smooth(
         empty. Same units as ``da``; attrs ``smoothing_size``,
         ``smoothing_sigma``. Lazy on dask input.
     """
-    size = _check_size(size)
-    sigma = gaussian_sigma(size) if sigma is None else float(sigma)
-    if not sigma > 0:
-        raise ValueError(f"sigma must be positive (pixels), got {sigma!r}")
-    if not 0 < min_weight <= 1:
-        raise ValueError(f"min_weight must be in (0, 1] (share of the kernel mass), got {min_weight!r}")
+    size, sigma, weights = _smoothing(size, sigma, min_weight)
     out = _image_filter(
         _as_float(da, "da"),
         _smooth_image,
         size // 2,
         np.nan,
         np.float64,
-        weights=_gaussian_weights(size, sigma),
+        weights=weights,
         min_weight=float(min_weight),
     )
     out.attrs = {**da.attrs, "smoothing_size": size, "smoothing_sigma": sigma}
     return out
+
+
+def _uncertainty_image(
+    value: np.ndarray, uncertainty: np.ndarray, weights: np.ndarray, min_weight: float, inflation: float
+) -> np.ndarray:
+    """Standard uncertainty (H, W) float64 of the normalised convolution of ``value`` (module docstring)."""
+    valid = np.isfinite(value)
+    known = valid & np.isfinite(uncertainty)
+    squares = weights * weights
+    mass = _correlate(valid.astype(np.float64), weights)
+    known_mass = _correlate(known.astype(np.float64), weights)
+    known_squares = _correlate(known.astype(np.float64), squares)
+    sigma = np.where(known, uncertainty, 0.0)
+    keep = valid & (mass >= min_weight) & (known_mass > 0)
+    out = np.full(value.shape, np.nan)
+    # fully correlated errors: the weighted mean uncertainty of the pixels whose uncertainty is known
+    np.divide(_correlate(sigma, weights), known_mass, out=out, where=keep)
+    if math.isfinite(inflation):
+        # independent errors: sqrt(sum w^2 s^2) / sum w, with the w^2-weighted mean variance of the
+        # known pixels standing in for the unknown ones; scaled by sqrt(inflation), at most the bound
+        variance = np.zeros(value.shape)
+        np.divide(_correlate(sigma * sigma, squares), known_squares, out=variance, where=keep)
+        independent = np.full(value.shape, np.nan)
+        np.divide(
+            np.sqrt(inflation * variance * _correlate(valid.astype(np.float64), squares)),
+            mass,
+            out=independent,
+            where=keep,
+        )
+        np.minimum(out, independent, out=out, where=keep)
+    return out
+
+
+def smooth_uncertainty(
+    da: xr.DataArray,
+    uncertainty: xr.DataArray,
+    size: int = DEFAULT_SIZE,
+    *,
+    sigma: float | None = None,
+    min_weight: float = DEFAULT_MIN_FRACTION,
+    inflation: float = math.inf,
+) -> xr.DataArray:
+    """Standard uncertainty of :func:`smooth` of ``da``, propagated from per-pixel uncertainties.
+
+    Parameters
+    ----------
+    da : (..., y, x) DataArray
+        The image that is smoothed; NaN marks a missing pixel.
+    uncertainty : (..., y, x) DataArray
+        Standard uncertainty (>= 0) of each pixel of ``da``, same units; NaN
+        where unknown (e.g. a fit without residual degrees of freedom).
+    size, sigma, min_weight
+        The smoothing, as for :func:`smooth`.
+    inflation : float, default inf
+        Variance inflation factor F of the kernel for the spatial correlation
+        of the pixels' errors (:func:`variance_inflation`): 1 for independent
+        errors, ``inf`` for the fully correlated bound.
+
+    Returns
+    -------
+    (..., y, x) DataArray of float64
+        ``min(sqrt(F sum w_i^2 s_i^2) / sum w_i, sum w_i s_i / sum w_i)`` over
+        the finite pixels i of each window, with the weighted mean variance
+        (mean uncertainty) of the pixels whose uncertainty is known standing in
+        for those whose is not; NaN where :func:`smooth` is NaN or no pixel of
+        the window has a known uncertainty. Attrs ``smoothing_size``,
+        ``smoothing_sigma`` and ``inflation`` (when finite). Lazy on dask input.
+    """
+    size, sigma, weights = _smoothing(size, sigma, min_weight)
+    if not inflation > 0:
+        raise ValueError(f"inflation must be positive (1: independent errors, inf: fully correlated), got {inflation!r}")
+    try:
+        da, uncertainty = xr.align(_as_float(da, "da"), _as_float(uncertainty, "uncertainty"), join="exact")
+    except ValueError as exc:
+        raise ValueError(f"smooth_uncertainty: da and uncertainty must be on one grid ({exc})") from exc
+    out = _image_filter(
+        (da, uncertainty.transpose(*da.dims)),
+        _uncertainty_image,
+        size // 2,
+        np.nan,
+        np.float64,
+        weights=weights,
+        min_weight=float(min_weight),
+        inflation=float(inflation),
+    )
+    out.attrs = {
+        **({"units": uncertainty.attrs["units"]} if "units" in uncertainty.attrs else {}),
+        "smoothing_size": size,
+        "smoothing_sigma": sigma,
+        **({"inflation": float(inflation)} if math.isfinite(inflation) else {}),
+    }
+    return out
+
+
+def residual_correlation(
+    reflectance: xr.DataArray, aoi: xr.DataArray, fit: xr.Dataset, max_lag: int = DEFAULT_SIZE - 1
+) -> xr.DataArray:
+    """Spatial correlation of the scattering fit's residuals, pooled over the views.
+
+    Residuals ``R - R0 cos((2 - 1/n) theta)^n`` of the pixels fitted with
+    residual degrees of freedom (status 0, more than two views); those farther
+    than 5 robust standard deviations (1.4826 MAD) from their view's median are
+    left out. The correlation is not centred: an error shared by all pixels is
+    a correlated error.
+
+    Parameters
+    ----------
+    reflectance, aoi : (view, y, x) DataArray
+        The registered views the fit was made from (aoi in radians).
+    fit : Dataset (y, x)
+        Output of :func:`surffin.scattering.fit_scattering` (``R0``, ``n``,
+        ``status``, ``n_views``).
+    max_lag : int, default 6
+        Largest lag, pixels, along y and x.
+
+    Returns
+    -------
+    (lag_y, lag_x) DataArray of float64
+        ``sum r(p) r(p + d) / N(d)`` over pixel pairs and views, divided by its
+        value at lag 0, for lags -max_lag..max_lag; NaN without residuals (no
+        pixel fitted from more than two views) and at lags without a pixel
+        pair. Attr ``n_residuals``. Computed eagerly.
+    """
+    import scipy.fft
+
+    from surffin.scattering import scattering_model
+
+    if isinstance(max_lag, bool) or not isinstance(max_lag, numbers.Integral) or max_lag < 0:
+        raise ValueError(f"max_lag must be a non-negative integer (pixels), got {max_lag!r}")
+    _check_grid(reflectance, "reflectance", ("view", "y", "x"))
+    _check_grid(aoi, "aoi", ("view", "y", "x"))
+    missing = [name for name in ("R0", "n", "status", "n_views") if name not in fit]
+    if missing:
+        raise ValueError(f"residual_correlation: fit lacks {missing}; pass the Dataset of fit_scattering")
+    try:
+        reflectance, aoi, fit = xr.align(reflectance, aoi, fit, join="exact")
+    except ValueError as exc:
+        raise ValueError(f"residual_correlation: the views and the fit must be on one grid ({exc})") from exc
+    order = ("view", "y", "x")
+    r = np.asarray(reflectance.transpose(*order).values, dtype=np.float64)
+    theta = np.asarray(aoi.transpose(*order).values, dtype=np.float64)
+    image = fit[["R0", "n", "status", "n_views"]].transpose("y", "x").compute()
+    usable = (image["status"].values == 0) & (image["n_views"].values > 2)
+    with np.errstate(invalid="ignore"):
+        residual = r - scattering_model(theta, image["R0"].values[None], image["n"].values[None])
+    numerator = np.zeros((2 * max_lag + 1,) * 2)
+    pairs = np.zeros_like(numerator)
+    # circular autocorrelation by FFT; max_lag zeros of padding keep the wrap-around out of the lags kept
+    shape = [scipy.fft.next_fast_len(length + max_lag, real=True) for length in residual.shape[1:]]
+    lags = np.arange(-max_lag, max_lag + 1)
+    index = np.ix_(lags % shape[0], lags % shape[1])
+
+    def autocorrelation(values):
+        spectrum = scipy.fft.rfft2(values, shape)
+        return scipy.fft.irfft2(spectrum * spectrum.conj(), shape)[index]
+
+    for view in residual:
+        ok = usable & np.isfinite(view)
+        if not ok.any():
+            continue
+        median = np.median(view[ok])
+        spread = 1.4826 * np.median(np.abs(view[ok] - median))
+        ok &= np.abs(view - median) <= _RESIDUAL_CLIP * spread
+        numerator += autocorrelation(np.where(ok, view, 0.0))
+        pairs += np.round(autocorrelation(ok.astype(np.float64)))
+    centre = (max_lag, max_lag)
+    covariance = np.full_like(numerator, np.nan)
+    np.divide(numerator, pairs, out=covariance, where=pairs > 0)
+    correlation = covariance / covariance[centre] if covariance[centre] > 0 else np.full_like(covariance, np.nan)
+    return xr.DataArray(
+        correlation,
+        dims=("lag_y", "lag_x"),
+        coords={"lag_y": lags, "lag_x": lags},
+        attrs={
+            "units": "1",
+            "long_name": "spatial correlation of the scattering fit's residuals, pooled over the views",
+            "n_residuals": int(pairs[centre]),
+        },
+    )
+
+
+def variance_inflation(correlation: xr.DataArray, size: int = DEFAULT_SIZE, *, sigma: float | None = None) -> float:
+    """Variance inflation factor of the smoothing kernel for spatially correlated errors.
+
+    ``F = sum_ij w_i w_j rho(i - j) / sum_i w_i^2`` over the pixels of a full
+    kernel: the variance of the smoothed value is F times that of independent
+    errors, and ``(sum w)^2 / (F sum w^2)`` is the effective number of
+    independent pixels in the window. F is 1 for independent errors and
+    ``(sum w)^2 / sum w^2`` (23.6 for 7 x 7) for fully correlated ones.
+
+    Parameters
+    ----------
+    correlation : (lag_y, lag_x) DataArray
+        Correlation of the errors of two pixels at each lag (e.g.
+        :func:`residual_correlation`), covering lags ``-(size - 1)..size - 1``.
+    size, sigma
+        The smoothing kernel, as for :func:`smooth`.
+
+    Returns
+    -------
+    float
+        F; NaN where ``correlation`` is.
+    """
+    from scipy.signal import correlate2d
+
+    size, sigma, weights = _smoothing(size, sigma)
+    reach = size - 1
+    _check_grid(correlation, "correlation", ("lag_y", "lag_x"))
+    lags = np.arange(-reach, reach + 1)
+    try:
+        rho = correlation.sel(lag_y=lags, lag_x=lags).transpose("lag_y", "lag_x").values
+    except KeyError as exc:
+        raise ValueError(f"correlation must cover lags -{reach}..{reach} for a {size}x{size} kernel ({exc})") from exc
+    kernel = np.outer(weights, weights)
+    return float((correlate2d(kernel, kernel) * rho).sum() / (kernel * kernel).sum())
 
 
 def local_std(
@@ -395,28 +687,38 @@ def features(
     size: int = DEFAULT_SIZE,
     sigma: float | None = None,
     min_weight: float = DEFAULT_MIN_FRACTION,
+    error_correlation: xr.DataArray | None = None,
 ) -> xr.Dataset:
-    """The classification features of an item on its reference grid.
+    """The classification features of an item on its reference grid, with their uncertainties.
 
     Parameters
     ----------
     fit : Dataset
-        Output of :func:`surffin.scattering.fit_scattering`: ``R0``, ``n`` and
-        the per-pixel quality (y, x).
+        Output of :func:`surffin.scattering.fit_scattering`: ``R0``, ``n``,
+        ``R0_sigma``, ``n_sigma`` and the per-pixel quality (y, x).
     variability : (y, x) DataArray
         Output of :func:`variability`, already warped onto the grid of ``fit``.
     size, sigma, min_weight
         Smoothing of R0 and n, as for :func:`smooth`.
+    error_correlation : (lag_y, lag_x) DataArray, optional
+        Spatial correlation of the fit's errors (:func:`residual_correlation`
+        of the views the fit was made from), for the propagation of
+        ``R0_sigma`` and ``n_sigma`` (module docstring). Without it, or when it
+        is NaN (no residuals), the uncertainties are the fully correlated bound.
 
     Returns
     -------
     Dataset (y, x)
-        ``R0``, ``n`` (smoothed), ``variability`` (the features); ``R0_fit``,
-        ``n_fit`` (unsmoothed) and the quality variables of :data:`QUALITY`
-        present in ``fit``. Attrs ``smoothing_size``, ``smoothing_sigma``,
-        ``min_weight``. Lazy on dask input.
+        ``R0``, ``n`` (smoothed), ``variability`` (the features);
+        ``R0_uncertainty``, ``n_uncertainty`` (standard uncertainties of the
+        smoothed R0 and n, :func:`smooth_uncertainty`); ``R0_fit``, ``n_fit``
+        (unsmoothed) and the quality variables of :data:`QUALITY` present in
+        ``fit``. Attrs ``smoothing_size``, ``smoothing_sigma``, ``min_weight``,
+        ``uncertainty_propagation`` and, for correlated errors,
+        ``uncertainty_inflation`` (F of :func:`variance_inflation`) and
+        ``uncertainty_effective_pixels``. Lazy on dask input.
     """
-    missing = [name for name in ("R0", "n") if name not in fit]
+    missing = [name for name in ("R0", "n", *UNCERTAINTY.values()) if name not in fit]
     if missing:
         raise ValueError(f"features: fit lacks {missing}; pass the Dataset of fit_scattering")
     _check_grid(variability, "variability")
@@ -424,23 +726,41 @@ def features(
         xr.align(fit, variability, join="exact")
     except ValueError as exc:
         raise ValueError(f"features: variability is not on the grid of the fit ({exc}); warp it first") from exc
-    smoothed = {
-        name: smooth(fit[name], size, sigma=sigma, min_weight=min_weight).assign_attrs(
+    size, sigma, weights = _smoothing(size, sigma, min_weight)
+    inflation = math.inf if error_correlation is None else variance_inflation(error_correlation, size, sigma=sigma)
+    propagation = {"uncertainty_propagation": "fully correlated errors (upper bound)"}
+    if math.isfinite(inflation):
+        propagation = {
+            "uncertainty_propagation": "spatially correlated errors, correlation of the fit residuals",
+            "uncertainty_inflation": inflation,
+            # (sum w)^2 / (F sum w^2), the 2-D weights summing to 1
+            "uncertainty_effective_pixels": 1.0 / (inflation * float((weights * weights).sum()) ** 2),
+        }
+    else:
+        inflation = math.inf  # NaN: no residuals to measure the correlation by
+    long_names = {"R0": "reflectance at normal incidence", "n": "scattering coefficient"}
+    smoothed, uncertainties = {}, {}
+    for name, long_name in long_names.items():
+        smoothed[name] = smooth(fit[name], size, sigma=sigma, min_weight=min_weight).assign_attrs(
             units="1", long_name=f"{long_name} (Gaussian-smoothed {size}x{size})"
         )
-        for name, long_name in (("R0", "reflectance at normal incidence"), ("n", "scattering coefficient"))
-    }
-    sigma = smoothed["R0"].attrs["smoothing_sigma"]
+        uncertainties[f"{name}_uncertainty"] = smooth_uncertainty(
+            fit[name], fit[UNCERTAINTY[name]], size, sigma=sigma, min_weight=min_weight, inflation=inflation
+        ).assign_attrs(
+            units="1",
+            long_name=f"standard uncertainty of the smoothed {name}, propagated from {UNCERTAINTY[name]}",
+        )
     ds = xr.Dataset(
         {
             **smoothed,
             "variability": variability.assign_attrs(
                 units="1", long_name=variability.attrs.get("long_name", "spatial reflectance variability")
             ),
+            **uncertainties,
             "R0_fit": fit["R0"],
             "n_fit": fit["n"],
             **{name: fit[name] for name in QUALITY if name in fit},
         }
     )
-    ds.attrs = {"smoothing_size": size, "smoothing_sigma": sigma, "min_weight": float(min_weight)}
+    ds.attrs = {"smoothing_size": size, "smoothing_sigma": sigma, "min_weight": float(min_weight), **propagation}
     return ds

@@ -43,7 +43,7 @@ import xarray as xr
 from surffin.calibration import TERMS, calibration_diagnostics, instrument_function
 from surffin.campaign import Roi
 from surffin.classify import FEATURES, UNCLASSIFIED
-from surffin.features import select_roi, smooth
+from surffin.features import UNCERTAINTY, select_roi, smooth
 from surffin.scattering import scattering_model
 
 __all__ = [
@@ -85,6 +85,8 @@ FIGURE_KINDS = {
 _MAX_POINTS = 4000
 # Opacity of the class colours over the intensity image.
 _LABEL_ALPHA = 0.6
+# Colour of unclassified pixels over the intensity image (RGBA): dark, the intensity faintly visible.
+_UNCLASSIFIED_COLOUR = (0.0, 0.0, 0.0, 0.8)
 # Percentiles of the colour range of feature images and of the intensity background.
 _RANGE = (2, 98)
 
@@ -414,17 +416,20 @@ def plot_wall_reflectance(calibration: xr.Dataset, path: str | os.PathLike) -> P
 def plot_features(
     features: xr.Dataset, registered: xr.Dataset, path: str | os.PathLike, *, roi: Roi | None = None
 ) -> Path:
-    """Paper Fig. 13: an item's feature images and the reflectance samples they come from.
+    """Paper Fig. 13: an item's feature images, their uncertainties and the reflectance samples.
 
     Panels: R0, n and variability on the item's reference grid (sensor
-    coordinates, the roi dashed), and the registered reflectance of all views
-    against their AOI on a polar plot (pixels of the roi, or of the whole image),
-    with the scattering model (eq. 3) at the median R0 and n.
+    coordinates, the roi dashed); the standard uncertainties of the smoothed R0
+    and n (logarithmic colour scale); and the registered reflectance of all
+    views against their AOI on a polar plot (pixels of the roi, or of the whole
+    image), with the scattering model (eq. 3) at the median R0 and n.
 
     Parameters
     ----------
     features : Dataset (y, x)
-        A features store (``R0``, ``n``, ``variability``; attrs ``item``, ``kind``, ``class``).
+        A features store (``R0``, ``n``, ``variability``, ``R0_uncertainty``,
+        ``n_uncertainty``; attrs ``item``, ``kind``, ``class``). A store
+        without the uncertainties (an older surffin) gets a note in their place.
     registered : Dataset (view, y, x)
         The item's registered store (``reflectance``, ``aoi``).
     path : path-like
@@ -435,22 +440,31 @@ def plot_features(
     -------
     Path
     """
-    features = features[list(FEATURES)].load()
+    uncertainties = [f"{name}_uncertainty" for name in UNCERTAINTY]
+    features = features[[*FEATURES, *(name for name in uncertainties if name in features)]].load()
     region = features if roi is None else select_roi(features, roi)
-    fig = _figure(13.0, 9.5)
-    axes = fig.subplots(2, 2)
+    fig = _figure(19.0, 9.5)
+    axes = fig.subplots(2, 3)
     panels = (
         ("R0", "R0: reflectance at normal incidence", "viridis", _RANGE, False),
         ("n", "n: scattering coefficient", "cividis", _RANGE, False),
         ("variability", "spatial reflectance variability (log scale)", "inferno", (2, 99.5), True),
+        *(
+            (name, f"standard uncertainty of the smoothed {name.split('_')[0]} (log scale)", "magma", (1, 99.5), True)
+            for name in uncertainties
+        ),
     )
     for ax, (name, title, cmap, percentiles, log_scale) in zip(axes.ravel(), panels):
+        if name not in features:
+            ax.axis("off")
+            ax.text(0.5, 0.5, f"no {name} in this features store:\nrecompute it with this surffin", ha="center",
+                    va="center", fontsize=11)
+            continue
         limits = _robust_range(region[name].values, percentiles)
         _image(ax, features[name], title, f"{name} (1)", cmap, limits, log_scale=log_scale)
         _roi_box(ax, roi)
-    ax = axes[1, 1]
-    ax.remove()
-    polar = fig.add_subplot(2, 2, 4, projection="polar")
+    axes[1, 2].remove()
+    polar = fig.add_subplot(2, 3, 6, projection="polar")
     both = registered[["reflectance", "aoi"]]
     both = (both if roi is None else select_roi(both, roi)).load()
     r_max = 0.0
@@ -473,7 +487,10 @@ def plot_features(
     polar.legend(loc="lower left", bbox_to_anchor=(-0.1, -0.32), fontsize=8, markerscale=4, ncol=2)
     attrs = features.attrs
     what = f"specimen of class {attrs['class']}" if attrs.get("kind") == "specimen" else attrs.get("kind", "item")
-    fig.suptitle(f"{attrs.get('item', '')} ({what}): features, smoothed {attrs.get('smoothing_size', '?')} px")
+    title = f"{attrs.get('item', '')} ({what}): features, smoothed {attrs.get('smoothing_size', '?')} px"
+    if "uncertainty_effective_pixels" in attrs:
+        title += f"; uncertainties for {attrs['uncertainty_effective_pixels']:.1f} effectively independent px per window"
+    fig.suptitle(title)
     return _save(fig, path)
 
 
@@ -540,6 +557,9 @@ def plot_labels(
 ) -> Path:
     """Paper Fig. 15: a scene's class labels over its intensity image, before and after filtering.
 
+    Unclassified pixels (no feature, too uncertain, or unlike every class) are
+    dark; the count per reason (attr ``unclassified`` of ``label``) is noted.
+
     Parameters
     ----------
     labels : Dataset (y, x)
@@ -575,6 +595,7 @@ def plot_labels(
         ax.imshow(background.values, cmap=_colormap("gray", bad="black"), vmin=low, vmax=high,
                   extent=_extent(label), interpolation="nearest")
         overlay = np.zeros((*label.shape, 4))
+        overlay[label.values == UNCLASSIFIED] = _UNCLASSIFIED_COLOUR
         for index, name in enumerate(classes):
             overlay[label.values == index] = (*colours[name][:3], _LABEL_ALPHA)
         ax.imshow(overlay, extent=_extent(label), interpolation="nearest")
@@ -585,9 +606,15 @@ def plot_labels(
         ax.set_xlabel("sensor column x (px)")
         ax.set_ylabel("sensor row y (px)")
     handles = [Patch(facecolor=colours[name], alpha=_LABEL_ALPHA, label=name) for name in classes]
-    handles.append(Patch(facecolor="none", edgecolor="0.5", label=f"unclassified ({UNCLASSIFIED}): no colour"))
+    handles.append(Patch(facecolor=_UNCLASSIFIED_COLOUR, label=f"unclassified ({UNCLASSIFIED})"))
     fig.legend(handles=handles, loc="outside right center", title="class")
     fig.suptitle(f"Scene {labels.attrs.get('item', '')}: class labels over the intensity of view {view}")
+    reasons = labels["label"].attrs.get("unclassified")
+    if reasons:
+        counts = ", ".join(f"{reason.replace('_', ' ')} {count}" for reason, count in reasons.items())
+        total = int((labels["label"].values == UNCLASSIFIED).sum())
+        fig.supxlabel(f"unclassified pixels (both panels, black): {total} of {labels['label'].size}: {counts}",
+                      fontsize=9)
     return _save(fig, path)
 
 

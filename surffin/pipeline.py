@@ -295,14 +295,19 @@ def _features_region(spec: Mapping):
     return ds if roi is None else select_roi(ds, roi)
 
 
-def _write_json(output: str | os.PathLike, data) -> Path:
-    """Write ``data`` as indented JSON, atomically."""
+def _write_text(output: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` to ``output`` atomically, making its folder."""
     from surffin.viewfile import write_atomically
 
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
-    write_atomically(output, (json.dumps(data, indent=2) + "\n").encode())
+    write_atomically(output, text.encode())
     return output
+
+
+def _write_json(output: str | os.PathLike, data) -> Path:
+    """Write ``data`` as indented JSON, atomically."""
+    return _write_text(output, json.dumps(data, indent=2) + "\n")
 
 
 def run_summary(

@@ -14,7 +14,7 @@ import xarray as xr
 from surffin.calibration import reflectance
 from surffin.campaign import Roi
 from surffin.classify import classify, filter_labels
-from surffin.features import DEFAULT_SIZE, features, most_perpendicular_view, variability
+from surffin.features import DEFAULT_SIZE, features, most_perpendicular_view, residual_correlation, variability
 from surffin.geometry import DEFAULT_JUMP, DEFAULT_WINDOW, angle_of_incidence
 from surffin.registration import register, registration_maps, warp
 from surffin.roughness import roughness_map
@@ -87,31 +87,47 @@ def features_stage(
     The variability comes from the most perpendicular view (smallest median
     AOI over the item's roi, else over all its pixels), computed on that
     view's own grid and then warped: resampling first would smooth the noise
-    it measures.
+    it measures. The uncertainties of the smoothed R0 and n account for the
+    spatial correlation of the fit's residuals over the item
+    (:func:`surffin.features.residual_correlation`).
     """
     fit = fit_scattering(
         registered["reflectance"].chunk({"view": -1}),
         registered["aoi"].chunk({"view": -1}),
         min_views=min_views,
         min_spread=min_spread,
-    )
+    ).persist()
+    correlation = residual_correlation(registered["reflectance"], registered["aoi"], fit, max_lag=size - 1)
     view = most_perpendicular_view(aoi["aoi"], as_roi(roi))
     own = variability(reflectance["reflectance"].sel(view=view), aoi["aoi"].sel(view=view), size=variability_size)
     maps = registered[["map_x", "map_y"]].sel(view=[view])
     warped = warp(own.expand_dims(view=[view]), maps).squeeze("view", drop=True)
-    ds = features(fit, warped, size=size)
+    ds = features(fit, warped, size=size, error_correlation=correlation)
     ds.attrs = {**ds.attrs, **registered.attrs, "variability_view": str(view)}
     return ds
 
 
 def labels_stage(
-    features: xr.Dataset, training: xr.Dataset, *, k: int = 1, filter_kind: str = "median", filter_size: int = 5
+    features: xr.Dataset,
+    training: xr.Dataset,
+    *,
+    k: int = 1,
+    filter_kind: str = "median",
+    filter_size: int = 5,
+    max_uncertainty: float | None = None,
+    max_distance: float | None = None,
 ) -> xr.Dataset:
-    """Per-pixel class labels of a scene, before and after the label filter (method step 6)."""
-    label = classify(features.compute(), training, k=k)
+    """Per-pixel class labels of a scene, before and after the label filter (method step 6).
+
+    Pixels too uncertain (``max_uncertainty``) or unlike every class
+    (``max_distance``) are unclassified, as :func:`surffin.classify.classify`
+    says; the filter keeps them so.
+    """
+    label = classify(features.compute(), training, k=k, max_uncertainty=max_uncertainty, max_distance=max_distance)
     filtered = filter_labels(label, kind=filter_kind, size=filter_size)
     filtered.attrs = {**label.attrs, "filter": filter_kind, "filter_size": filter_size}
     return xr.Dataset({"label": label, "label_filtered": filtered}, attrs=features.attrs)
+
 
 def roughness_stage(features: xr.Dataset, *, relation: Mapping) -> xr.Dataset:
     """Indicative roughness map of an item from its smoothed n (:mod:`surffin.roughness`)."""

@@ -14,7 +14,9 @@ from sklearn.neighbors import KNeighborsClassifier
 from surffin.campaign import Roi
 from surffin.classify import (
     FEATURES,
+    UNCLASSIFIED_REASONS,
     class_fractions,
+    class_separation,
     classify,
     combine_training,
     filter_labels,
@@ -23,6 +25,7 @@ from surffin.classify import (
     training_set,
 )
 from surffin.errors import SurffinError
+from surffin.stages import labels_stage
 from surffin.store import open_store, write_store
 
 Y0, X0 = 100, 60
@@ -174,6 +177,89 @@ def test_training_cap_keeps_evenly_spread_samples_of_every_item():
 def test_training_cap_must_be_a_positive_integer(cap):
     with pytest.raises(ValueError, match="max_per_class"):
         training_set(specimens(), max_per_class=cap)
+
+
+def with_uncertainty(ds, r0=0.002, n=0.005):
+    """``ds`` with constant ``R0_uncertainty`` and ``n_uncertainty``."""
+    return ds.assign(R0_uncertainty=xr.full_like(ds["R0"], r0), n_uncertainty=xr.full_like(ds["n"], n))
+
+
+def test_uncertain_pixels_are_left_unclassified():
+    training = training_set(specimens())
+    std = dict(zip(FEATURES, training["feature_std"].values))
+    # bounds: 0.5 class separations in standardised units, i.e. times each feature's spread
+    bounds = {name: 0.5 * class_separation(training) * std[name] for name in ("R0", "n")}
+    scene = with_uncertainty(feature_image(CENTRES["S2"], seed=11), r0=0.5 * bounds["R0"], n=0.5 * bounds["n"])
+    scene["R0_uncertainty"][2:4, 5:9] = 1.1 * bounds["R0"]
+    scene["n_uncertainty"][7, 1] = 1.1 * bounds["n"]
+    scene["n_uncertainty"][9, 9] = np.nan
+    scene["variability"][0, 0] = np.nan
+    free = classify(scene, training)
+    assert (free.values == 1).sum() == free.size - 1
+    assert free.attrs["unclassified"] == dict.fromkeys(UNCLASSIFIED_REASONS, 0) | {"missing_feature": 1}
+    bounded = classify(scene, training, max_uncertainty=0.5)
+    expected = free.values.copy()
+    expected[2:4, 5:9] = expected[7, 1] = expected[9, 9] = -1
+    np.testing.assert_array_equal(bounded.values, expected)
+    assert bounded.attrs["unclassified"] == {
+        "missing_feature": 1,
+        "uncertainty_unknown": 1,
+        "uncertainty_above_bound": 9,
+        "far_from_training": 0,
+    }
+    assert bounded.attrs["max_uncertainty"] == 0.5
+    assert bounded.attrs["uncertainty_bounds"] == pytest.approx(bounds, rel=1e-12)
+    # a looser bound keeps the pixels between the two
+    loose = classify(scene, training, max_uncertainty=0.6)
+    assert loose.attrs["unclassified"]["uncertainty_above_bound"] == 0
+
+
+def test_uncertainty_bounds_are_checked():
+    training = training_set(specimens())
+    scene = with_uncertainty(feature_image(CENTRES["S1"]))
+    for bound in (0, -1.0, "0.1", True):
+        with pytest.raises(ValueError, match="positive"):
+            classify(scene, training, max_uncertainty=bound)
+    with pytest.raises(ValueError, match="lack n_uncertainty.*recompute"):
+        classify(scene.drop_vars("n_uncertainty"), training, max_uncertainty=0.5)
+    # without a bound the uncertainties are not needed
+    assert (classify(scene.drop_vars("n_uncertainty"), training).values == 0).all()
+
+
+def test_class_separation_is_the_distance_of_the_closest_class_centres():
+    training = training_set(specimens())
+    centres = (np.array(list(CENTRES.values())) - training["feature_mean"].values) / training["feature_std"].values
+    pairs = [np.linalg.norm(centres[a] - centres[b]) for a in range(3) for b in range(a + 1, 3)]
+    assert class_separation(training) == pytest.approx(min(pairs), rel=0.02)
+    with pytest.raises(ValueError, match="two classes"):
+        class_separation(training_set({"a": (feature_image(CENTRES["S1"]), "S1", None)}))
+
+
+def test_pixels_far_from_the_training_set_are_left_unclassified():
+    training = training_set(specimens())
+    scene = feature_image(CENTRES["S3"], seed=12)
+    scene["n"][:3] = 5.0  # a board unlike every class
+    nearest = classify(scene, training)
+    assert (nearest.values >= 0).all()
+    label = classify(scene, training, max_distance=0.5)
+    expected = np.full(label.shape, 2)
+    expected[:3] = -1
+    np.testing.assert_array_equal(label.values, expected)
+    assert label.attrs["unclassified"]["far_from_training"] == 3 * 16
+    assert label.attrs["distance_bound"] == pytest.approx(0.5 * class_separation(training))
+    assert label.attrs["max_distance"] == 0.5
+    with pytest.raises(ValueError, match="max_distance"):
+        classify(scene, training, max_distance=0)
+
+
+def test_labels_stage_keeps_unclassified_pixels_through_the_filter():
+    training = training_set(specimens())
+    scene = with_uncertainty(feature_image(CENTRES["S1"], seed=13))
+    scene["n_uncertainty"][4:7, 4:7] = 1.0
+    ds = labels_stage(scene, training, max_uncertainty=0.5, max_distance=0.5)
+    np.testing.assert_array_equal(ds["label"].values == -1, ds["label_filtered"].values == -1)
+    assert (ds["label_filtered"].values[4:7, 4:7] == -1).all()
+    assert ds["label_filtered"].attrs["unclassified"]["uncertainty_above_bound"] == 9
 
 
 def brute_filter(label, size, kind):

@@ -14,9 +14,12 @@ from surffin.features import (
     gaussian_sigma,
     local_std,
     most_perpendicular_view,
+    residual_correlation,
     select_roi,
     smooth,
+    smooth_uncertainty,
     variability,
+    variance_inflation,
 )
 from surffin.scattering import fit_scattering, scattering_model
 
@@ -49,11 +52,16 @@ def windows(image, size):
     return np.lib.stride_tricks.sliding_window_view(padded, (size, size))
 
 
-def brute_smooth(image, size, sigma, min_weight):
-    """Normalised convolution pixel by pixel with an independently built 2-D Gaussian."""
+def gaussian_kernel(size, sigma):
+    """An independently built, normalised 2-D Gaussian (size, size)."""
     offsets = np.arange(size) - size // 2
     kernel = np.exp(-(offsets[:, None] ** 2 + offsets[None, :] ** 2) / (2 * sigma**2))
-    kernel /= kernel.sum()
+    return kernel / kernel.sum()
+
+
+def brute_smooth(image, size, sigma, min_weight):
+    """Normalised convolution pixel by pixel with an independently built 2-D Gaussian."""
+    kernel = gaussian_kernel(size, sigma)
     out = np.full(image.shape, np.nan)
     win = windows(image, size)
     for i, j in np.ndindex(image.shape):
@@ -63,6 +71,32 @@ def brute_smooth(image, size, sigma, min_weight):
         if np.isfinite(image[i, j]) and mass >= min_weight:
             out[i, j] = (kernel[ok] * w[ok]).sum() / mass
     return out
+
+
+def brute_uncertainty(image, uncertainty, size, min_weight, inflation):
+    """The propagated uncertainty of the normalised convolution, pixel by pixel (smooth_uncertainty's formula)."""
+    kernel = gaussian_kernel(size, gaussian_sigma(size))
+    out = np.full(image.shape, np.nan)
+    values, sigmas = windows(image, size), windows(uncertainty, size)
+    for i, j in np.ndindex(image.shape):
+        ok = np.isfinite(values[i, j])
+        known = ok & np.isfinite(sigmas[i, j])
+        if not (np.isfinite(image[i, j]) and kernel[ok].sum() >= min_weight and known.any()):
+            continue
+        s, w = sigmas[i, j][known], kernel[known]
+        bound = (w * s).sum() / w.sum()
+        variance = (w**2 * s**2).sum() / (w**2).sum()
+        independent = np.sqrt(inflation * variance * (kernel[ok] ** 2).sum()) / kernel[ok].sum()
+        out[i, j] = min(bound, independent)
+    return out
+
+
+def holey_uncertainty(image, seed=0):
+    """Per-pixel uncertainties 0.01..0.05 of ``image``, unknown (NaN) on a few of its finite pixels."""
+    rng = np.random.default_rng(seed)
+    sigma = np.where(np.isfinite(image), rng.uniform(0.01, 0.05, image.shape), np.nan)
+    sigma[rng.integers(0, image.shape[0], 15), rng.integers(0, image.shape[1], 15)] = np.nan
+    return sigma
 
 
 def brute_std(image, size, ddof, min_count):
@@ -137,9 +171,11 @@ def test_dask_equals_numpy_for_any_chunks(y_cuts, x_cuts, size):
         return tuple(b - a for a, b in zip(bounds[:-1], bounds[1:]))
 
     lazy = image.chunk({"y": chunks(y_cuts, 23), "x": chunks(x_cuts, 31)})
-    for func in (smooth, local_std):
-        expected = func(image, size).values
-        out = func(lazy, size)
+    sigma = grid(holey_uncertainty(image.values, seed=size))
+    for func, args in ((smooth, ()), (local_std, ()), (smooth_uncertainty, (sigma,))):
+        expected = func(image, *args, size=size).values
+        # the uncertainties in other chunks than the values: cut into the values' chunks
+        out = func(lazy, *(arg.chunk({"x": 7}) for arg in args), size=size)
         assert isinstance(out.data, dask_array.Array)
         got = out.values
         np.testing.assert_array_equal(np.isnan(got), np.isnan(expected))
@@ -247,7 +283,7 @@ def fit():
 def test_features(fit):
     var = grid(np.full((16, 20), 0.01))
     ds = features(fit, var, size=5)
-    assert set(ds.data_vars) == {"R0", "n", "variability", "R0_fit", "n_fit", *QUALITY}
+    assert set(ds.data_vars) == {"R0", "n", "variability", "R0_uncertainty", "n_uncertainty", "R0_fit", "n_fit", *QUALITY}
     np.testing.assert_array_equal(ds["R0"].values, smooth(fit["R0"], 5).values)
     np.testing.assert_array_equal(ds["n_fit"].values, fit["n"].values)
     # smoothing lowers the pixel-to-pixel scatter of the fit
@@ -259,10 +295,178 @@ def test_features(fit):
     assert all(ds[name].attrs["units"] == "1" for name in ("R0", "n", "variability"))
     with pytest.raises(ValueError, match="warp"):
         features(fit, var.isel(x=slice(1, None)))
+    with pytest.raises(ValueError, match="n_sigma"):
+        features(fit.drop_vars("n_sigma"), var)
+
+
+def test_features_propagate_the_fit_sigma(fit):
+    var = grid(np.full((16, 20), 0.01))
+    # without a measured correlation: the fully correlated bound
+    bound = features(fit, var)
+    assert bound.attrs["uncertainty_propagation"].startswith("fully correlated")
+    assert "uncertainty_inflation" not in bound.attrs
+    np.testing.assert_array_equal(
+        bound["n_uncertainty"].values, smooth_uncertainty(fit["n"], fit["n_sigma"]).values
+    )
+    correlation = xr.DataArray(np.zeros((13, 13)), dims=("lag_y", "lag_x"), coords={"lag_y": np.arange(-6, 7), "lag_x": np.arange(-6, 7)})
+    correlation[6, 6] = 1.0
+    ds = features(fit, var, error_correlation=correlation)
+    assert ds.attrs["uncertainty_inflation"] == pytest.approx(1.0)
+    assert ds.attrs["uncertainty_effective_pixels"] == pytest.approx(variance_inflation(correlation * 0 + 1), rel=1e-12)
+    for name in ("R0", "n"):
+        expected = smooth_uncertainty(fit[name], fit[f"{name}_sigma"], inflation=ds.attrs["uncertainty_inflation"])
+        np.testing.assert_array_equal(ds[f"{name}_uncertainty"].values, expected.values)
+        assert ds[f"{name}_uncertainty"].attrs["units"] == "1"
+        assert f"{name}_sigma" in ds[f"{name}_uncertainty"].attrs["long_name"]
+        # independent errors average down; the bound does not
+        assert np.nanmedian(ds[f"{name}_uncertainty"]) < 0.3 * np.nanmedian(bound[f"{name}_uncertainty"])
+    # a correlation without residuals (NaN) falls back to the bound
+    assert features(fit, var, error_correlation=correlation * np.nan).attrs["uncertainty_propagation"].startswith("fully")
 
 
 def test_features_stay_lazy(fit):
     var = grid(np.full((16, 20), 0.01)).chunk({"y": 7})
     ds = features(fit.chunk({"y": 5, "x": 9}), var)
-    assert isinstance(ds["R0"].data, dask_array.Array)
-    np.testing.assert_allclose(ds["n"].values, features(fit, var.compute())["n"].values, rtol=1e-12)
+    eager = features(fit, var.compute())
+    for name in ("R0", "n", "R0_uncertainty", "n_uncertainty"):
+        assert isinstance(ds[name].data, dask_array.Array), name
+        np.testing.assert_allclose(ds[name].values, eager[name].values, rtol=1e-12)
+
+
+# --- propagation of the per-pixel uncertainties -------------------------------------------------
+
+
+@pytest.mark.parametrize(("size", "min_weight", "inflation"), [(7, 0.25, 1.0), (5, 0.5, 7.5), (3, 0.25, np.inf)])
+def test_uncertainty_matches_brute_force(size, min_weight, inflation):
+    image = holey_image(seed=4)
+    sigma = holey_uncertainty(image)
+    out = smooth_uncertainty(grid(image), grid(sigma), size, min_weight=min_weight, inflation=inflation)
+    expected = brute_uncertainty(image, sigma, size, min_weight, inflation)
+    np.testing.assert_array_equal(np.isnan(out.values), np.isnan(expected))
+    np.testing.assert_allclose(out.values, expected, rtol=1e-12)
+    # exactly where the smoothed value is, but for windows without a known uncertainty
+    assert not (np.isfinite(out.values) & np.isnan(smooth(grid(image), size, min_weight=min_weight).values)).any()
+
+
+def test_constant_uncertainty_has_the_closed_form():
+    shape, s = (15, 17), 0.02
+    kernel = gaussian_kernel(7, 1.4)
+    out = smooth_uncertainty(grid(np.ones(shape)), grid(np.full(shape, s)), 7, inflation=1.0).values
+    # inside: s sqrt(sum w^2) / sum w
+    np.testing.assert_allclose(out[3:-3, 3:-3], s * np.sqrt((kernel**2).sum()), rtol=1e-13)
+    # in a corner only a quarter of the kernel is in the image
+    quarter = kernel[3:, 3:]
+    assert out[0, 0] == pytest.approx(s * np.sqrt((quarter**2).sum()) / quarter.sum(), rel=1e-13)
+    # fully correlated: s everywhere
+    np.testing.assert_allclose(smooth_uncertainty(grid(np.ones(shape)), grid(np.full(shape, s))).values, s, rtol=1e-13)
+    # an unknown uncertainty takes the mean variance of its window: nothing changes here
+    unknown = np.full(shape, s)
+    unknown[5:7, 8] = np.nan
+    np.testing.assert_allclose(smooth_uncertainty(grid(np.ones(shape)), grid(unknown), inflation=1.0).values, out, rtol=1e-13)
+    # a window without any known uncertainty has none
+    hole = np.full(shape, np.nan)
+    hole[0, 0] = s
+    assert np.isnan(smooth_uncertainty(grid(np.ones(shape)), grid(hole)).values[10, 10])
+
+
+def test_independent_errors_monte_carlo():
+    image = holey_image(seed=6)
+    sigma = holey_uncertainty(image, seed=6)
+    sigma = np.where(np.isfinite(image), np.where(np.isnan(sigma), 0.03, sigma), np.nan)
+    rng = np.random.default_rng(7)
+    draws = image + sigma * rng.standard_normal((4000, *image.shape))
+    spread = smooth(grid(draws, draw=np.arange(4000)), 7).std("draw").values
+    propagated = smooth_uncertainty(grid(image), grid(sigma), 7, inflation=1.0).values
+    np.testing.assert_array_equal(np.isnan(spread), np.isnan(propagated))
+    np.testing.assert_allclose(spread, propagated, rtol=0.06, equal_nan=True)
+
+
+def correlated_noise(rng, shape, radius=6, length=1.5):
+    """Unit-variance noise correlated by a Gaussian filter of sd ``length``, and its exact correlation."""
+    taps = np.exp(-0.5 * (np.arange(-radius, radius + 1) / length) ** 2)
+    taps /= np.sqrt((taps**2).sum())
+    white = rng.standard_normal((*shape[:-2], shape[-2] + 2 * radius, shape[-1] + 2 * radius))
+    noise = np.apply_along_axis(np.convolve, -1, white, taps, "valid")
+    noise = np.apply_along_axis(np.convolve, -2, noise, taps, "valid")
+    lag = np.correlate(taps, taps, "full")[radius : 3 * radius + 1]
+    lags = np.arange(-radius, radius + 1)
+    correlation = xr.DataArray(np.outer(lag, lag), dims=("lag_y", "lag_x"), coords={"lag_y": lags, "lag_x": lags})
+    return noise, correlation
+
+
+def test_variance_inflation_of_correlated_errors_monte_carlo():
+    rng = np.random.default_rng(8)
+    noise, correlation = correlated_noise(rng, (3000, 9, 9))
+    inflation = variance_inflation(correlation, 7)
+    assert 1 < inflation < 23.6
+    spread = smooth(grid(0.5 + 0.02 * noise, draw=np.arange(3000)), 7).std("draw").values[4, 4]
+    propagated = smooth_uncertainty(grid(np.ones((9, 9))), grid(np.full((9, 9), 0.02)), 7, inflation=inflation)
+    assert spread == pytest.approx(propagated.values[4, 4], rel=0.05)
+
+
+def test_variance_inflation_limits():
+    lags = np.arange(-6, 7)
+    coords = {"lag_y": lags, "lag_x": lags}
+    delta = xr.DataArray(np.where(np.add.outer(lags**2, lags**2) == 0, 1.0, 0.0), dims=("lag_y", "lag_x"), coords=coords)
+    assert variance_inflation(delta, 7) == pytest.approx(1.0, rel=1e-14)
+    kernel = gaussian_kernel(7, 1.4)
+    assert variance_inflation(delta * 0 + 1, 7) == pytest.approx(1 / (kernel**2).sum(), rel=1e-12)
+    assert variance_inflation(delta * 0 + 1, 7) == pytest.approx(23.6, abs=0.05)
+    # a larger correlation table is cut to the kernel's lags; a smaller one is an error
+    assert variance_inflation(delta, 5) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="lags -6..6"):
+        variance_inflation(delta.isel(lag_y=slice(1, -1), lag_x=slice(1, -1)), 7)
+
+
+def views_of(noise, shape):
+    """Registered reflectance and AOI (view, y, x) of 5 views of R0 = 0.8, n = 1.3 plus ``noise``."""
+    theta = np.deg2rad(np.array([0.0, 12, 24, 36, 48]))[:, None, None] + np.zeros((5, *shape))
+    reflectance = scattering_model(theta, 0.8, 1.3) + noise
+    view = [f"v{k}" for k in range(5)]
+    return grid(reflectance, view=view), grid(theta, view=view)
+
+
+@pytest.mark.parametrize("correlated", [False, True])
+def test_residual_correlation_measures_the_error_correlation(correlated):
+    rng = np.random.default_rng(9)
+    shape = (120, 150)
+    if correlated:
+        noise, expected = correlated_noise(rng, (5, *shape))
+    else:
+        noise, expected = rng.standard_normal((5, *shape)), None
+    reflectance, aoi = views_of(0.01 * noise, shape)
+    reflectance[2, 10:14, 20:24] += 0.5  # outliers are left out
+    fit = fit_scattering(reflectance, aoi)
+    out = residual_correlation(reflectance, aoi, fit, max_lag=6)
+    assert out.dims == ("lag_y", "lag_x") and out.sel(lag_y=0, lag_x=0) == 1.0
+    np.testing.assert_allclose(out.values, out.values[::-1, ::-1], rtol=1e-10)
+    if correlated:
+        np.testing.assert_allclose(out.values, expected.values, atol=0.04)
+        assert variance_inflation(out) == pytest.approx(variance_inflation(expected), rel=0.1)
+    else:
+        off_centre = np.abs(out.values[np.arange(13) != 6])
+        assert off_centre.max() < 0.03
+        assert variance_inflation(out) == pytest.approx(1.0, abs=0.1)
+    # lags beyond a small image are zero-padded, not an error
+    small = residual_correlation(reflectance.isel(y=slice(0, 4)), aoi.isel(y=slice(0, 4)), fit.isel(y=slice(0, 4)))
+    assert small.shape == (13, 13) and np.isnan(small.values[0]).all()
+
+
+def test_residual_correlation_without_residuals_is_nan():
+    reflectance, aoi = views_of(0.0, (10, 12))
+    reflectance[2:] = np.nan  # two views: fitted exactly, no residual degrees of freedom
+    fit = fit_scattering(reflectance, aoi)
+    assert (fit["status"] == 0).all()
+    assert np.isnan(residual_correlation(reflectance, aoi, fit).values).all()
+    with pytest.raises(ValueError, match="one grid"):
+        residual_correlation(reflectance, aoi, fit.isel(x=slice(1, None)))
+    with pytest.raises(ValueError, match="max_lag"):
+        residual_correlation(reflectance, aoi, fit, max_lag=-1)
+
+
+def test_uncertainty_errors():
+    image = grid(holey_image())
+    with pytest.raises(ValueError, match="inflation"):
+        smooth_uncertainty(image, image, inflation=0)
+    with pytest.raises(ValueError, match="one grid"):
+        smooth_uncertainty(image, image.isel(x=slice(1, None)))

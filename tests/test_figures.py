@@ -236,6 +236,13 @@ def test_feature_figures_are_drawn(tmp_path):
     assert_drawn(plot_features(features, registered, tmp_path / "roi.png", roi=ROI))
     scene_features, _ = item_stores("scene")
     assert_drawn(plot_features(scene_features, registered, tmp_path / "whole.png"))
+    # with the uncertainty maps of a features store of this surffin (the stores above have none)
+    uncertain = features.assign(R0_uncertainty=0.01 * features["R0"], n_uncertainty=0.02 * features["n"])
+    uncertain.attrs["uncertainty_effective_pixels"] = 3.2
+    without = png(plot_features(features, registered, tmp_path / "without.png", roi=ROI))
+    shown = png(plot_features(uncertain, registered, tmp_path / "with.png", roi=ROI))
+    assert_drawn(tmp_path / "with.png")
+    assert not np.array_equal(without, shown)
     assert_drawn(plot_feature_space(training_set(), tmp_path / "space.png"))
 
 
@@ -249,6 +256,11 @@ def test_label_map_shows_the_labels(tmp_path):
     assert first.shape == second.shape and not np.array_equal(first, second)
     same = png(plot_labels(labels, ingest, tmp_path / "c.png", scores=SUMMARY["scenes"]["T1"]))
     np.testing.assert_array_equal(first, same)
+    # unclassified pixels are drawn (dark), and their count by reason noted
+    declined = labels.copy(deep=True)
+    declined["label"].values[:3] = -1
+    declined["label"].attrs["unclassified"] = {"missing_feature": 0, "uncertainty_above_bound": 3 * labels.sizes["x"]}
+    assert not np.array_equal(first, png(plot_labels(declined, ingest, tmp_path / "d.png", scores=SUMMARY["scenes"]["T1"])))
 
 
 def test_accuracy_table_reports_the_summary(tmp_path):
@@ -382,6 +394,7 @@ def test_snakemake_report_holds_every_figure(tmp_path):
     expected = {
         "calibration_fit.png", "calibration_r2.png", "calibration_parameters.html", "calibration_parameters.csv",
         "wall_reflectance.png", "feature_space.png", "accuracy.html", "accuracy.csv",
+        "calibration_correlation.png", "calibration_repeatability.png",
         *(f"features/{name}.png" for name in camp.items), *(f"labels/{name}.png" for name in camp.scenes),
     }
     assert {str(path.relative_to(figures)) for path in figures.rglob("*") if path.is_file()} == expected
@@ -393,7 +406,8 @@ def test_snakemake_report_holds_every_figure(tmp_path):
     run = snakemake(done, "--report", str(done / "report.html"))
     assert run.returncode == 0, run.stderr[-3000:]
     report = (done / "report.html").read_text()
-    for name in ("calibration_fit.png", "wall_reflectance.png", "accuracy.html", "feature_space.png"):
+    for name in ("calibration_fit.png", "wall_reflectance.png", "accuracy.html", "feature_space.png",
+                 "calibration_repeatability.png", "separation.png", "views.png"):
         assert name in report
     assert "Undefined substitution" not in run.stderr + run.stdout  # captions are valid reStructuredText
     # a smoothing change redraws the feature figures and what follows, not the calibration's

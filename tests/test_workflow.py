@@ -19,7 +19,7 @@ ITEM_CHAIN = {"ingest", "aoi", "reflectance", "registration", "features", "item_
 ROUGHNESS = {"roughness_relation": 1, "roughness_map": 1}
 DOWNSTREAM = {
     "training": 1, "labels": 1, "summary": 1, "classification_figures": 1, "scene_figures": 1, "all": 1,
-    "calibration_diagnostics": 1, **ROUGHNESS,
+    "calibration_diagnostics": 1, "paper_comparison": 1, **ROUGHNESS,
 }
 
 
@@ -108,7 +108,7 @@ def test_every_store_follows_the_contract(done):
         assert labels[var].attrs["flag_meanings"] == "S1 S2 S3 S4"
         # every unclassified pixel is counted under one reason, before and after the filter
         assert sum(labels[var].attrs["unclassified"].values()) == int((labels[var] == -1).sum())
-    assert labels.attrs["surffin_parameters"]["max_uncertainty"] == {"R0": 0.03, "n": 0.08}
+    assert labels.attrs["surffin_parameters"]["max_uncertainty"] == 0.5
     summary = json.loads((processed / "summary.json").read_text())
     assert set(summary["items"]) == set(camp.items)
     assert summary["items"]["S1"]["region"] == "roi" and summary["items"]["T1"]["region"] == "image"
@@ -118,6 +118,8 @@ def test_every_store_follows_the_contract(done):
     relation = json.loads((processed / "roughness" / "relation.json").read_text())
     assert set(relation["specimens"]) == {"S1", "S2", "S3", "S4"}
     assert relation["slope"] < 0  # the tiny preset's plaster: n falls with roughness
+    comparison = (processed / "paper-comparison.md").read_text()
+    assert "| classification | T1: accuracy of label " in comparison and "| calibration | mean R²" in comparison
     diagnostics = json.loads((processed / "diagnostics" / "calibration.json").read_text())
     assert diagnostics["repeatability"]["available"]  # the tiny preset renders a repeat calibration set
     assert 0 < diagnostics["calibrations"]["first"]["fit"]["mean_r2"] <= 1
@@ -134,14 +136,14 @@ def test_smoothing_change_reruns_features_and_below_only(done):
     jobs = planned_jobs(done, overrides={"features": {"smoothing": 5}})
     figures = {"item_figures": 5, "classification_figures": 1, "scene_figures": 1}
     assert jobs == {"features": 5, "training": 1, "labels": 1, "summary": 1, "all": 1, **figures, **ROUGHNESS,
-                    "calibration_diagnostics": 1}
+                    "calibration_diagnostics": 1, "paper_comparison": 1}
 
 
 def test_aoi_window_change_reruns_from_aoi_down(done):
     jobs = planned_jobs(done, overrides={"aoi": {"window": 11, "jump": 0.16}})
     downstream = {"aoi", "reflectance", "registration", "features", "training", "labels", "summary", "all"}
     assert set(jobs) == downstream | {"item_figures", "classification_figures", "scene_figures", *ROUGHNESS,
-                                      "calibration_diagnostics"}
+                                      "calibration_diagnostics", "paper_comparison"}
     assert jobs["aoi"] == 5
 
 
@@ -154,7 +156,7 @@ def test_code_version_bump_reruns_that_stage(done, tmp_path):
     # one more than whatever the labels stage's version is now
     common.write_text(re.sub(r'"labels": (\d+),', lambda m: f'"labels": {int(m[1]) + 1},', common.read_text(), count=1))
     jobs = planned_jobs(done, snakefile=copy / "Snakefile")
-    assert jobs == {"labels": 1, "summary": 1, "classification_figures": 1, "scene_figures": 1, "all": 1}
+    assert jobs == {"labels": 1, "summary": 1, "classification_figures": 1, "scene_figures": 1, "paper_comparison": 1, "all": 1}
 
 
 def test_replacing_one_view_reruns_its_chain_only(fresh):

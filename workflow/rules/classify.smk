@@ -38,11 +38,13 @@ rule labels:
             "k": config["classify"]["k"],
             "filter_kind": config["classify"]["filter"],
             "filter_size": config["classify"]["filter_size"],
+            "max_uncertainty": config["classify"]["max_uncertainty"],
+            "max_distance": config["classify"]["max_distance"],
         },
         chunks=config["chunks"],
         scheduler=config["scheduler"],
         code=STAGE_VERSION["labels"],
-    threads: 2
+    threads: 1
     conda:
         ENV
     resources:

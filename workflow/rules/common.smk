@@ -28,14 +28,15 @@ STAGE_VERSION = {
     "aoi": 1,
     "reflectance": 1,
     "registration": 1,
-    "features": 1,
+    "features": 2,
     "training": 2,
-    "labels": 1,
+    "labels": 2,
     "summary": 2,
-    "figures": 1,
+    "figures": 2,
     "roughness": 1,
     "sensitivity": 1,
     "diagnostics": 1,
+    "comparison": 1,
 }
 
 
@@ -216,6 +217,42 @@ def roughness_outputs():
         f"{PROCESSED}/roughness/relation.json",
         *expand(f"{PROCESSED}/roughness/{{scene}}.zarr", scene=CAMP.scenes),
     ]
+
+
+def specimens_by_roughness(wildcards):
+    """Specimen names from the smoothest to the roughest (campaign order where roughness is unknown)."""
+    order = {name: item.roughness_mm for name, item in CAMP.specimens.items()}
+    return sorted(CAMP.specimens, key=lambda name: (order[name] is None, order[name] or 0.0))
+
+
+def comparison_inputs(wildcards):
+    inputs = {
+        "summary": f"{PROCESSED}/summary.json",
+        "diagnostics": f"{PROCESSED}/diagnostics/calibration.json",
+        "sensitivity": f"{PROCESSED}/sensitivity/sensitivity.zarr",
+        "slopes": f"{PROCESSED}/sensitivity/slopes.csv",
+    }
+    if roughness_outputs():
+        inputs["relation"] = f"{PROCESSED}/roughness/relation.json"
+    return inputs
+
+
+SCENE_JOBS = ("ingest", "aoi", "reflectance", "registered", "features", "labels")
+
+
+def runtime_settings(wildcards):
+    """Per scene, its view count and the benchmark files of its chain from raw views to labels."""
+    return {
+        name: {
+            "views": len(item.views),
+            "benchmarks": [f"{LOGS}/benchmarks/{stage}/{name}.tsv" for stage in SCENE_JOBS],
+        }
+        for name, item in CAMP.scenes.items()
+    }
+
+
+def runtime_benchmarks(wildcards):
+    return [path for spec in runtime_settings(wildcards).values() for path in spec["benchmarks"]]
 
 
 def scene_truth(wildcards):

@@ -1,0 +1,275 @@
+"""Every quantitative claim of the paper beside surffin's number for the same quantity.
+
+:func:`comparison` reads what the workflow wrote (``summary.json``, the calibration
+diagnostics, the sensitivity analysis, the roughness relation, the jobs' benchmark
+files) and returns one row per claim: the paper's value, surffin's, and where
+surffin's comes from. :func:`run_paper_comparison` writes them as a Markdown
+table (``paper-comparison.md``), the generated half of ``docs/paper-reproduction.md``.
+Nothing here computes science: it only reads and lines up numbers, so that a
+rerun of the workflow regenerates the table.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+__all__ = ["PAPER", "comparison", "to_markdown", "run_paper_comparison"]
+
+#: The paper's numbers (Frangez et al. 2021), by the quantity they describe.
+PAPER = {
+    "accuracy": {"label": 0.97, "label_filtered": 1.0},
+    "separation_deg": 20.0,
+    "slope": {"R0": -0.5, "n": -1.0},
+    "feature_span_percent": {"R0": 10.0, "n": 4.0},
+    "runtime_s": 300.0,
+    "runtime_views": 5,
+}
+_TERMS = ("A", "B", "C", "D", "E")
+_SENSITIVITY = "snakemake --cores 2 sensitivity (or: surffin sensitivity --out DIR)"
+_DIAGNOSTICS = "snakemake --cores 2 calibration_diagnostics"
+_MAIN = "snakemake --cores 2"
+
+
+def _row(section: str, quantity: str, paper, surffin, source: str, command: str, note: str = "") -> dict:
+    return {
+        "section": section, "quantity": quantity, "paper": paper, "surffin": surffin,
+        "source": source, "command": command, "note": note,
+    }
+
+
+def _fmt(value, digits: int = 3) -> str:
+    if value is None:
+        return "n/a"
+    if isinstance(value, str):
+        return value
+    return f"{value:.{digits}g}"
+
+
+def _calibration_rows(diag: Mapping) -> list[dict]:
+    paper = diag["paper"]
+    first = diag["calibrations"]["first"]
+    src = "diagnostics/calibration.json"
+    rows = [
+        _row("calibration", "mean R² over the crop's pixels", paper["mean_r2"], first["fit"]["mean_r2"], src, _DIAGNOSTICS),
+        _row(
+            "calibration", "variability across the image, % (A, B, C, D, E)",
+            ", ".join(_fmt(paper["variability_percent"][t]) for t in _TERMS),
+            ", ".join(_fmt(first["variability_percent"]["plain"][t]) for t in _TERMS), src, _DIAGNOSTICS,
+            "plain 100 std/|mean|; E = 1 is the fit's gauge, so E does not vary here",
+        ),
+    ]
+    ours = first["correlation"]
+    index = {t: i for i, t in enumerate(ours["terms"])}
+    for a, b in (("C", "D"), ("A", "B"), ("A", "C"), ("A", "D"), ("B", "C"), ("B", "D")):
+        theirs = paper["correlation"]["matrix"][_TERMS.index(a)][_TERMS.index(b)]
+        rows.append(_row("calibration", f"correlation {a}-{b} (Table 2)", theirs, ours["matrix"][index[a]][index[b]], src, _DIAGNOSTICS))
+    own = [w for w in diag["wall_features"] if w["calibration"] == "first" and w["views_in_fit"] == w["views"]]
+    for name in ("R0", "n"):
+        value = own[0][name]["std"] if own else None
+        rows.append(
+            _row("calibration", f"std of {name} on the calibration wall", paper["wall_feature_std"][name], value, src,
+                 _DIAGNOSTICS, "per-pixel fit over the wall views the calibration was fitted to")
+        )
+    rep = diag["repeatability"]
+    expected = paper["repeatability_percent"]
+    if not rep["available"]:
+        rows.append(_row("calibration", "repeatability of two calibration sets", "see below", None, src, _DIAGNOSTICS, rep["reason"]))
+        return rows
+    rows += [
+        _row("calibration", "repeatability: coefficients, median |difference| % (A, B, C, D)",
+             f"< {_fmt(expected['coefficients'])}", ", ".join(_fmt(rep["coefficients"][t]["median_abs_percent"]) for t in _TERMS[:4]),
+             src, _DIAGNOSTICS),
+        _row("calibration", "repeatability: instrument function k f, median |difference| %", "n/a",
+             rep["calibration"]["median_abs_percent"], src, _DIAGNOSTICS),
+    ]
+    wall = next(w for w in rep["wall"] if w["wall"] == diag["calibrations"]["first"]["calibration_set"]["wall"])
+    rows.append(_row("calibration", "repeatability: wall reflectance, median |difference| %", expected["reflectance"],
+                     wall["reflectance"]["median_abs_percent"], src, _DIAGNOSTICS))
+    for name in ("R0", "n"):
+        rows.append(_row("calibration", f"repeatability: {name} on the wall / on the specimens, median |difference| %",
+                         expected[name], f"{_fmt(wall[name]['median_abs_percent'])} / {_fmt(rep['specimens'][name]['median_abs_percent'])}",
+                         src, _DIAGNOSTICS))
+    return rows
+
+
+def _read_table(path, delimiter: str = ",") -> list[dict]:
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle, delimiter=delimiter))
+
+
+def _number(text) -> float | None:
+    """A number of a CSV cell; None where it is empty (NaN written by pandas)."""
+    return float(text) if text not in ("", None) else None
+
+
+def _sensitivity_rows(slopes: Sequence[Mapping], separation: Sequence[Mapping]) -> list[dict]:
+    rows = []
+    for row in slopes:
+        rows.append(
+            _row("sensitivity", f"slope of std against K views, {row['parameter']}, {row['noise']} noise {row['sigma']}",
+                 PAPER["slope"][row["parameter"]], _number(row["slope"]), "sensitivity/slopes.csv", _SENSITIVITY,
+                 f"linearised {_fmt(_number(row['predicted_slope']), 2)}; K >= 3 only: {_fmt(_number(row['slope_from_3']), 2)}")
+        )
+    for row in separation:
+        paper = PAPER["separation_deg"] if (row["noise"], row["level"]) == ("reflectance", "max") else "n/a"
+        rows.append(
+            _row("sensitivity", f"separation for std < 10 %, {row['parameter']}, {row['noise']} noise {row['sigma']}, deg",
+                 paper, float(row["required_separation_deg"]), "sensitivity/sensitivity.zarr", _SENSITIVITY,
+                 "paper: 'about 20 deg or more' at the high reflectance noise")
+        )
+    return rows
+
+
+def _feature_rows(summary: Mapping, specimens: Sequence[str]) -> list[dict]:
+    items = summary["items"]
+    rows = []
+    for name in specimens:
+        stats = items[name]
+        spans = {f: 100 * stats[f]["std"] / stats[f]["mean"] for f in ("R0", "n")}
+        rows.append(
+            _row("features", f"{name}: mean R0, n (relative std R0, n %)", "see Fig. 14",
+                 f"{_fmt(stats['R0']['mean'])}, {_fmt(stats['n']['mean'])} ({_fmt(spans['R0'], 2)}, {_fmt(spans['n'], 2)})",
+                 "summary.json", _MAIN,
+                 f"paper: span within a specimen ~{PAPER['feature_span_percent']['R0']:g} % R0, ~{PAPER['feature_span_percent']['n']:g} % n")
+        )
+    n = [items[s]["n"]["mean"] for s in specimens]
+    r0 = [items[s]["R0"]["mean"] for s in specimens]
+    rows.append(_row("features", "n falls from the smoothest to the roughest specimen", "yes",
+                     "yes" if all(a > b for a, b in zip(n, n[1:])) else "no", "summary.json", _MAIN))
+    peak = r0.index(max(r0))
+    rows.append(_row("features", "specimen of largest mean R0 (paper: rises to S3, drops for S4)", specimens[2] if len(specimens) > 2 else "n/a",
+                     specimens[peak], "summary.json", _MAIN))
+    return rows
+
+
+def _classification_rows(summary: Mapping) -> list[dict]:
+    rows = []
+    for scene, result in summary["scenes"].items():
+        for var in ("label", "label_filtered"):
+            accuracy = result.get("accuracy", {}).get(var)
+            rows.append(
+                _row("classification", f"{scene}: accuracy of {var} (unclassified counts as wrong)", PAPER["accuracy"][var],
+                     None if accuracy is None else accuracy["accuracy"], "summary.json", _MAIN,
+                     "" if accuracy is not None else "no truth for this scene")
+            )
+    return rows
+
+
+def _roughness_rows(relation: Mapping | None) -> list[dict]:
+    if relation is None:
+        return [_row("roughness", "relation of mean n and roughness", "nearly linear", None, "roughness/relation.json", _MAIN,
+                     "fewer than two specimens carry roughness_mm")]
+    return [
+        _row("roughness", "linear relation of mean n and roughness: R²", "nearly linear", relation["r2"], "roughness/relation.json", _MAIN,
+             f"n = {_fmt(relation['intercept'], 4)} {relation['slope']:+.4g} roughness_mm"),
+        _row("roughness", "leave-one-out error of the roughness from n, mm", "n/a", relation["roughness_rmse_mm"],
+             "roughness/relation.json", _MAIN),
+    ]
+
+
+def _runtime_rows(runtime: Mapping[str, Mapping]) -> list[dict]:
+    rows = []
+    for scene, spec in runtime.items():
+        seconds = sum(float(_read_table(path, "\t")[0]["s"]) for path in spec["benchmarks"])
+        rows.append(
+            _row("runtime", f"{scene}: {spec['views']} views from raw files to labels, s", PAPER["runtime_s"], seconds,
+                 "logs/benchmarks/*/" + scene + ".tsv", _MAIN,
+                 f"paper: ~5 min for {PAPER['runtime_views']} views; here the jobs' wall times summed (each a new process)")
+        )
+    return rows
+
+
+def comparison(
+    *,
+    summary: Mapping,
+    specimens: Sequence[str],
+    diagnostics: Mapping | None = None,
+    slopes: Sequence[Mapping] = (),
+    separation: Sequence[Mapping] = (),
+    relation: Mapping | None = None,
+    runtime: Mapping[str, Mapping] | None = None,
+) -> list[dict]:
+    """Rows of paper claims beside surffin's numbers.
+
+    Parameters
+    ----------
+    summary : mapping
+        ``summary.json``.
+    specimens : sequence of str
+        Specimen names from the smoothest to the roughest (the paper's S1..S4 order).
+    diagnostics : mapping, optional
+        ``diagnostics/calibration.json``.
+    slopes, separation : sequence of mapping
+        Rows of the sensitivity analysis' slopes and separation summary.
+    relation : mapping, optional
+        ``roughness/relation.json``; None when no relation was fitted.
+    runtime : mapping, optional
+        Scene -> ``{"views": int, "benchmarks": [TSV paths of its jobs]}``.
+
+    Returns
+    -------
+    list of dict
+        ``section``, ``quantity``, ``paper``, ``surffin``, ``source``, ``command``, ``note``.
+    """
+    rows = _calibration_rows(diagnostics) if diagnostics is not None else []
+    rows += _sensitivity_rows(slopes, separation)
+    rows += _feature_rows(summary, specimens)
+    rows += _roughness_rows(relation)
+    rows += _classification_rows(summary)
+    rows += _runtime_rows(runtime or {})
+    return rows
+
+
+def to_markdown(rows: Sequence[Mapping]) -> str:
+    """The rows as a Markdown table, one section after the other."""
+    lines = ["| section | quantity | paper | surffin | source | note |", "| --- | --- | --- | --- | --- | --- |"]
+    for row in rows:
+        cells = [row["section"], row["quantity"], _fmt(row["paper"]), _fmt(row["surffin"]), f"`{row['source']}`", row["note"]]
+        lines.append("| " + " | ".join(str(c).replace("|", "/") for c in cells) + " |")
+    commands = sorted({row["command"] for row in rows})
+    return "\n".join([*lines, "", "Regenerate with: " + "; ".join(f"`{c}`" for c in commands), ""])
+
+
+def run_paper_comparison(
+    output: str | os.PathLike,
+    *,
+    summary: str | os.PathLike,
+    specimens: Sequence[str],
+    diagnostics: str | os.PathLike | None = None,
+    sensitivity: str | os.PathLike | None = None,
+    slopes: str | os.PathLike | None = None,
+    relation: str | os.PathLike | None = None,
+    runtime: Mapping[str, Mapping] | None = None,
+    log_path: str | os.PathLike | None = None,
+) -> Path:
+    """Write ``paper-comparison.md`` from the workflow's outputs (see :func:`comparison`).
+
+    ``sensitivity`` is the sensitivity store (its separation summary is
+    recomputed from the table), ``slopes`` its slopes CSV.
+    """
+    from surffin.pipeline import _write_text, logging_to
+
+    with logging_to(log_path) as log:
+        separation = []
+        if sensitivity is not None:
+            from surffin.sensitivity import separation_summary
+            from surffin.store import open_store
+
+            frame = separation_summary(open_store(sensitivity, stage="sensitivity").load()).to_dataframe()
+            separation = frame.reset_index().to_dict("records")
+        rows = comparison(
+            summary=json.loads(Path(summary).read_text()),
+            specimens=specimens,
+            diagnostics=None if diagnostics is None else json.loads(Path(diagnostics).read_text()),
+            slopes=_read_table(slopes) if slopes is not None else (),
+            separation=separation,
+            relation=None if relation is None else json.loads(Path(relation).read_text()),
+            runtime=runtime,
+        )
+        log.info("paper comparison: %d rows", len(rows))
+        header = "# surffin beside the paper (generated by surffin.reproduction; see docs/paper-reproduction.md)\n\n"
+        return _write_text(output, header + to_markdown(rows))
