@@ -57,6 +57,7 @@ __all__ = [
     "plot_features",
     "plot_feature_space",
     "plot_labels",
+    "plot_roughness",
     "accuracy_table",
     "write_table",
     "run_figures",
@@ -78,6 +79,7 @@ FIGURE_KINDS = {
     "accuracy_table": ("summary",),
     "features": ("features", "registered"),
     "labels": ("labels", "ingest"),
+    "roughness": ("roughness",),
 }
 
 # Most points drawn per scatter (per class in the feature space): enough to show the
@@ -618,6 +620,48 @@ def plot_labels(
     return _save(fig, path)
 
 
+def plot_roughness(roughness: xr.Dataset, path: str | os.PathLike) -> Path:
+    """A scene's indicative roughness map beside the specimens' relation of mean n and roughness.
+
+    Parameters
+    ----------
+    roughness : Dataset (y, x)
+        A roughness store (:func:`surffin.stages.roughness_stage`); the relation
+        is the one recorded in its parameters.
+    path : path-like
+
+    Returns
+    -------
+    Path
+    """
+    roughness = roughness.load()
+    relation = roughness.attrs["surffin_parameters"]["relation"]
+    fig = _figure(13.0, 4.8)
+    left, right = fig.subplots(1, 2, width_ratios=(1.6, 1))
+    inside = roughness["roughness"].where(~roughness["extrapolated"])
+    limits = _robust_range(inside.values)
+    _image(left, inside, "indicative roughness (grey: outside the specimens' range of n)", "roughness (mm)",
+           "viridis", limits)
+    left.set_xlabel("sensor column x (px)")
+    left.set_ylabel("sensor row y (px)")
+    specimens = relation["specimens"]
+    r = np.array([v["roughness_mm"] for v in specimens.values()])
+    n = np.array([v["mean_n"] for v in specimens.values()])
+    right.plot(r, n, "o", color="C0")
+    for name, x, y in zip(specimens, r, n):
+        right.annotate(name, (x, y), textcoords="offset points", xytext=(5, 3))
+    line = np.linspace(0.0, 1.1 * r.max(), 50)
+    right.plot(line, relation["intercept"] + relation["slope"] * line, color="C3",
+               label=f"n = {relation['intercept']:.3f} {relation['slope']:+.3f} r, R² {relation['r2']:.3f}")
+    right.set_xlabel("reference roughness r (mm)")
+    right.set_ylabel("mean n of the specimen")
+    right.set_title("specimens' relation (least squares)")
+    right.legend(loc="best", fontsize=8)
+    right.grid(alpha=0.3)
+    fig.suptitle(f"Scene {roughness.attrs.get('item', '')}: roughness from n (indicative, not a measurement)")
+    return _save(fig, path)
+
+
 def accuracy_table(summary: Mapping) -> pd.DataFrame:
     """Per scene and label variant: accuracy against the truth and the share of each class.
 
@@ -701,6 +745,7 @@ def run_figures(
     registered: str | os.PathLike | None = None,
     labels: str | os.PathLike | None = None,
     ingest: str | os.PathLike | None = None,
+    roughness: str | os.PathLike | None = None,
     roi: Roi | Mapping | None = None,
     log_path: str | os.PathLike | None = None,
 ) -> list[Path]:
@@ -719,6 +764,8 @@ def run_figures(
     labels, ingest : path-like, optional
         One scene's labels and ingest stores (kind ``labels``; with
         ``summary``, the accuracy appears in the titles).
+    roughness : path-like, optional
+        One scene's roughness store (kind ``roughness``).
     roi : Roi or {"y": [a, b], "x": [c, d]}, optional
         The item's roi (kind ``features``).
     log_path : path-like, optional
@@ -739,7 +786,7 @@ def run_figures(
     from surffin.store import open_store
 
     given = {"calibration": calibration, "training": training, "summary": summary, "features": features,
-             "registered": registered, "labels": labels, "ingest": ingest}
+             "registered": registered, "labels": labels, "ingest": ingest, "roughness": roughness}
     for kind in outputs:
         if kind not in FIGURE_KINDS:
             raise ValueError(f"unknown figure kind {kind!r}; known: {sorted(FIGURE_KINDS)}")
@@ -764,6 +811,7 @@ def run_figures(
             "labels": lambda path: plot_labels(
                 opened["labels"], opened["ingest"], path, scores=opened.get("summary", {}).get("scenes", {}).get(scene)
             ),
+            "roughness": lambda path: plot_roughness(opened["roughness"], path),
         }
         written = []
         for kind, value in outputs.items():

@@ -41,6 +41,9 @@ __all__ = [
 
 log = logging.getLogger("surffin")
 
+#: Percentiles of each specimen's pixel n whose span over the specimens the roughness relation supports.
+SUPPORT_PERCENTILES = (2, 98)
+
 #: Per-item stages run by :func:`run_stage`: name -> stage function.
 STAGES = {
     "aoi": stages.aoi_stage,
@@ -361,6 +364,10 @@ def run_roughness_relation(
 ) -> Path:
     """Fit the specimens' relation of mean n and roughness into a JSON file.
 
+    The relation's ``n_range``, where the map is not marked extrapolated, spans
+    the specimens' pixels from the lowest 2nd to the highest 98th percentile
+    of n (:data:`SUPPORT_PERCENTILES`).
+
     Parameters
     ----------
     specimens : mapping
@@ -370,8 +377,16 @@ def run_roughness_relation(
     from surffin.roughness import roughness_relation
 
     with logging_to(log_path):
-        mean_n = {name: float(_features_region(spec)["n"].mean().compute()) for name, spec in specimens.items()}
-        relation = roughness_relation(mean_n, {name: spec["roughness_mm"] for name, spec in specimens.items()})
+        mean_n, spans = {}, []
+        for name, spec in specimens.items():
+            n = _features_region(spec)["n"].values
+            n = n[np.isfinite(n)]
+            mean_n[name] = float(n.mean()) if n.size else float("nan")
+            spans += list(np.percentile(n, SUPPORT_PERCENTILES)) if n.size else []
+        relation = roughness_relation(
+            mean_n, {name: spec["roughness_mm"] for name, spec in specimens.items()},
+            n_range=(min(spans), max(spans)) if spans else None,
+        )
         log.info(
             "roughness relation over %d specimens: n = %.4f %+.4f roughness_mm, R^2 %.4f",
             len(specimens), relation["intercept"], relation["slope"], relation["r2"],

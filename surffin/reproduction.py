@@ -119,7 +119,7 @@ def _sensitivity_rows(slopes: Sequence[Mapping], separation: Sequence[Mapping]) 
         rows.append(
             _row("sensitivity", f"separation for std < 10 %, {row['parameter']}, {row['noise']} noise {row['sigma']}, deg",
                  paper, float(row["required_separation_deg"]), "sensitivity/sensitivity.zarr", _SENSITIVITY,
-                 "paper: 'about 20 deg or more' at the high reflectance noise")
+                 "paper: 'about 20 deg or more' at the high reflectance noise" if paper != "n/a" else "")
         )
     return rows
 
@@ -229,7 +229,7 @@ def to_markdown(rows: Sequence[Mapping]) -> str:
     lines = ["| section | quantity | paper | surffin | source | note |", "| --- | --- | --- | --- | --- | --- |"]
     for row in rows:
         cells = [row["section"], row["quantity"], _fmt(row["paper"]), _fmt(row["surffin"]), f"`{row['source']}`", row["note"]]
-        lines.append("| " + " | ".join(str(c).replace("|", "/") for c in cells) + " |")
+        lines.append("| " + " | ".join(str(c).replace("|", "\\|") for c in cells) + " |")
     commands = sorted({row["command"] for row in rows})
     return "\n".join([*lines, "", "Regenerate with: " + "; ".join(f"`{c}`" for c in commands), ""])
 

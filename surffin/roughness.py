@@ -18,7 +18,7 @@ of n (those pixels are marked). It is not a measurement of roughness.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import xarray as xr
@@ -31,7 +31,9 @@ __all__ = ["MIN_SPECIMENS", "roughness_relation", "roughness_map"]
 MIN_SPECIMENS = 2
 
 
-def roughness_relation(mean_n: Mapping[str, float], roughness_mm: Mapping[str, float]) -> dict:
+def roughness_relation(
+    mean_n: Mapping[str, float], roughness_mm: Mapping[str, float], n_range: Sequence[float] | None = None
+) -> dict:
     """Fit ``n = intercept + slope * roughness`` over the specimens.
 
     Parameters
@@ -40,6 +42,9 @@ def roughness_relation(mean_n: Mapping[str, float], roughness_mm: Mapping[str, f
         Specimen name -> mean smoothed n over its roi.
     roughness_mm : mapping
         Specimen name -> reference roughness, mm (the same names).
+    n_range : (low, high), optional
+        The values of n the specimens support (e.g. the span of their pixels'
+        n); default: from the smallest to the largest mean n.
 
     Returns
     -------
@@ -79,7 +84,7 @@ def roughness_relation(mean_n: Mapping[str, float], roughness_mm: Mapping[str, f
         "r2": 1.0 - rss / tss if tss > 0 else 1.0,
         "residual_std": math.sqrt(rss / (len(names) - 2)) if len(names) > 2 else None,
         "roughness_rmse_mm": float(np.sqrt(np.mean((np.array(loo) - r) ** 2))) if len(names) >= 3 else None,
-        "n_range": [float(n.min()), float(n.max())],
+        "n_range": [float(n.min()), float(n.max())] if n_range is None else [float(v) for v in n_range],
         "specimens": {
             k: {"mean_n": float(n[i]), "roughness_mm": float(r[i]), "fitted_n": float(fitted[i]), "loo_roughness_mm": loo[i]}
             for i, k in enumerate(names)
@@ -117,7 +122,7 @@ def roughness_map(n: xr.DataArray, relation: Mapping) -> xr.Dataset:
     -------
     Dataset
         ``roughness`` (y, x) mm, NaN where n is; ``extrapolated`` (y, x) bool,
-        True where n lies outside the specimens' range of mean n (the line is
+        True where n lies outside the relation's ``n_range`` (the line is
         not supported there).
     """
     if relation["slope"] == 0:
@@ -130,6 +135,6 @@ def roughness_map(n: xr.DataArray, relation: Mapping) -> xr.Dataset:
         "comment": "indicative only: extrapolated outside the specimens' range of n, one material, n alone",
     }
     extrapolated = ((n < low) | (n > high)) & n.notnull()
-    extrapolated.attrs = {"long_name": "n outside the range of the specimens' mean n (roughness extrapolated)"}
+    extrapolated.attrs = {"long_name": "n outside the range of n the specimens support (roughness extrapolated)"}
     attrs = {"comment": "indicative roughness map (surffin.roughness): not a measurement"}
     return xr.Dataset({"roughness": roughness.rename(None), "extrapolated": extrapolated.rename(None)}, attrs=attrs)

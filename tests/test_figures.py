@@ -396,6 +396,7 @@ def test_snakemake_report_holds_every_figure(tmp_path):
         "wall_reflectance.png", "feature_space.png", "accuracy.html", "accuracy.csv",
         "calibration_correlation.png", "calibration_repeatability.png",
         *(f"features/{name}.png" for name in camp.items), *(f"labels/{name}.png" for name in camp.scenes),
+        *(f"roughness/{name}.png" for name in camp.scenes),
     }
     assert {str(path.relative_to(figures)) for path in figures.rglob("*") if path.is_file()} == expected
     for path in figures.rglob("*.png"):

@@ -63,6 +63,10 @@ def test_relation_refuses_what_gives_no_line(n, r, match):
         roughness_relation(n, r)
 
 
+def test_given_range_is_kept():
+    assert roughness_relation(mean_n(), ROUGHNESS, n_range=(0.5, 1.5))["n_range"] == [0.5, 1.5]
+
+
 def test_map_inverts_the_line_and_marks_extrapolation():
     rel = roughness_relation(mean_n(noise=(0, 0, 0, 0)), ROUGHNESS)
     n = xr.DataArray(np.array([[1.30 - 2.4 * 0.05, np.nan], [1.5, 1.30 - 2.4 * 0.3]]), dims=("y", "x"))
@@ -77,10 +81,11 @@ def test_map_inverts_the_line_and_marks_extrapolation():
 def test_pipeline_writes_relation_and_map(tmp_path):
     """Specimen stores whose n follows the line give it back; the map store records the relation."""
     rng = np.random.default_rng(0)
-    specimens = {}
+    specimens, inside = {}, {}
     for name, r in ROUGHNESS.items():
         n = 1.30 - 2.4 * r + 0.01 * rng.standard_normal((20, 30))
         n[:2] = 5.0  # outside the roi: must not count
+        inside[name] = n[2:]
         ds = xr.Dataset({"n": (("y", "x"), n)}, coords={"y": np.arange(10, 30), "x": np.arange(40, 70)})
         ds.attrs["surffin_stage"] = "features"
         write_store(ds, tmp_path / f"{name}.zarr")
@@ -88,6 +93,8 @@ def test_pipeline_writes_relation_and_map(tmp_path):
     out = run_roughness_relation(tmp_path / "rough" / "relation.json", specimens=specimens)
     rel = json.loads(out.read_text())
     assert rel["slope"] == pytest.approx(-2.4, rel=0.01) and rel["r2"] > 0.999
+    # supported n: from the lowest 2nd to the highest 98th percentile of the specimens' roi pixels
+    assert rel["n_range"] == pytest.approx([np.percentile(inside["S4"], 2), np.percentile(inside["S1"], 98)], rel=1e-12)
     store = run_roughness_map(tmp_path / "T1.zarr", features=specimens["S2"]["store"], relation=out)
     ds = open_store(store, stage="roughness")
     assert ds.attrs["surffin_parameters"]["relation"]["slope"] == rel["slope"]

@@ -16,7 +16,7 @@ import surffin
 
 REPO = Path(__file__).resolve().parents[1]
 ITEM_CHAIN = {"ingest", "aoi", "reflectance", "registration", "features", "item_figures"}
-ROUGHNESS = {"roughness_relation": 1, "roughness_map": 1}
+ROUGHNESS = {"roughness_relation": 1, "roughness_map": 1, "roughness_figures": 1}
 DOWNSTREAM = {
     "training": 1, "labels": 1, "summary": 1, "classification_figures": 1, "scene_figures": 1, "all": 1,
     "calibration_diagnostics": 1, "paper_comparison": 1, **ROUGHNESS,

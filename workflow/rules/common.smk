@@ -216,6 +216,7 @@ def roughness_outputs():
     return [
         f"{PROCESSED}/roughness/relation.json",
         *expand(f"{PROCESSED}/roughness/{{scene}}.zarr", scene=CAMP.scenes),
+        *expand(f"{PROCESSED}/figures/roughness/{{scene}}.png", scene=CAMP.scenes),
     ]
 
 

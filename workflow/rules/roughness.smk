@@ -40,3 +40,28 @@ rule roughness_map:
         mem_mb=1000,
     script:
         "../scripts/roughness_map.py"
+
+
+rule roughness_figures:
+    input:
+        roughness=f"{PROCESSED}/roughness/{{scene}}.zarr",
+    output:
+        roughness=report(
+            f"{PROCESSED}/figures/roughness/{{scene}}.png",
+            caption="../report/roughness.rst",
+            category="4. Roughness (indicative)",
+            labels={"scene": "{scene}", "figure": "roughness from n"},
+        ),
+    log:
+        f"{LOGS}/figures/roughness/{{scene}}.log",
+    benchmark:
+        f"{LOGS}/benchmarks/figures/roughness/{{scene}}.tsv"
+    params:
+        code=STAGE_VERSION["figures"],
+    threads: 1
+    conda:
+        ENV
+    resources:
+        mem_mb=1000,
+    script:
+        "../scripts/figures.py"
