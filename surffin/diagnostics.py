@@ -77,6 +77,7 @@ __all__ = [
     "compare_calibrations",
     "wall_features",
     "process_specimens",
+    "representative_specimens",
     "plot_correlation",
     "plot_repeatability",
     "run_calibration_diagnostics",
@@ -426,10 +427,24 @@ def wall_features(
     return observed, xr.concat(fits, dim="calibration").assign_coords(calibration=names)
 
 
+def representative_specimens(campaign: Campaign) -> list[str]:
+    """The first specimen of each class, in campaign order: those the diagnostics reprocess.
+
+    One per class keeps the diagnostics' cost and memory independent of the
+    number of specimens while still covering every class's range of features.
+    """
+    first = {}
+    for name, item in campaign.specimens.items():
+        first.setdefault(item.cls, name)
+    return list(first.values())
+
+
 def process_specimens(
     campaign: Campaign, calibrations: Mapping[str, xr.Dataset], params: Mapping | None = None
 ) -> dict[str, dict[str, xr.Dataset]]:
-    """Each specimen processed with each calibration (:func:`surffin.stages.process_item`), in memory.
+    """The :func:`representative_specimens` processed with each calibration, in memory.
+
+    Uses :func:`surffin.stages.process_item`.
 
     Parameters
     ----------
@@ -455,7 +470,8 @@ def process_specimens(
 
     params = dict(params or {})
     out = {}
-    for name, item in campaign.specimens.items():
+    for name in representative_specimens(campaign):
+        item = campaign.specimens[name]
         ingest = ingest_item(campaign, name)
         out[name] = {}
         for which, calibration in calibrations.items():

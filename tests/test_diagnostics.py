@@ -2,6 +2,7 @@
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,7 @@ from surffin.diagnostics import (
     coefficient_statistics,
     compare_calibrations,
     relative_difference,
+    representative_specimens,
     run_calibration_diagnostics,
     spread,
     variability,
@@ -158,6 +160,17 @@ def tiny(tmp_path_factory):
         root / "raw", processed / "repeat.zarr", params={"jump": TINY_JUMP}, folders=REPEAT_FOLDERS
     )
     return root, first, repeat
+
+
+def test_one_specimen_per_class_is_reprocessed(tiny, tmp_path):
+    root = tiny[0]
+    assert representative_specimens(surffin.read_campaign(root / "raw")) == ["S1", "S2", "S3", "S4"]
+    # a copy with a second specimen of class S2 listed first
+    copy = shutil.copytree(root / "raw", tmp_path / "campaign")
+    spec = yaml.safe_load((copy / "campaign.yaml").read_text())
+    spec["specimens"] = {"S2b": {**spec["specimens"]["S2"]}, **spec["specimens"]}
+    (copy / "campaign.yaml").write_text(yaml.safe_dump(spec, sort_keys=False))
+    assert representative_specimens(surffin.read_campaign(copy)) == ["S2b", "S1", "S3", "S4"]
 
 
 def diagnose(tiny, output, **kwargs):

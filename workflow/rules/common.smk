@@ -8,6 +8,7 @@ from snakemake.utils import validate
 import surffin
 import surffin.roughness
 from surffin.calibration import calibration_set
+from surffin.diagnostics import representative_specimens
 from surffin.errors import SurffinError
 
 
@@ -157,16 +158,20 @@ def repeat_calibration_store(wildcards):
 
 
 def diagnostics_views(wildcards):
-    """The campaign's wall views and the specimens' views that the calibration diagnostics read."""
+    """The campaign's wall views and the views of the specimens the calibration diagnostics reprocess."""
     wall = () if CAMP.calibration is None else CAMP.calibration.wall
-    return [str(path) for path in (*wall, *(view for item in CAMP.specimens.values() for view in item.views))]
+    specimens = [CAMP.specimens[name] for name in representative_specimens(CAMP)]
+    return [str(path) for path in (*wall, *(view for item in specimens for view in item.views))]
 
 
 def diagnostics_settings(wildcards):
     """The crop and the specimens' rois and reference views: a change reruns the diagnostics."""
     return {
         "crop": {"y": list(CAMP.crop.y), "x": list(CAMP.crop.x)},
-        "specimens": {name: {"roi": roi_of(name), "reference": item.reference} for name, item in CAMP.specimens.items()},
+        "specimens": {
+            name: {"roi": roi_of(name), "reference": CAMP.specimens[name].reference}
+            for name in representative_specimens(CAMP)
+        },
     }
 
 
