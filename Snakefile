@@ -19,6 +19,7 @@ include: "workflow/rules/reproduction.smk"
 
 
 rule all:
+    default_target: True
     input:
         final_outputs,
         rules.calibration_figures.output,
@@ -28,4 +29,3 @@ rule all:
         expand(rules.scene_figures.output.labels, scene=CAMP.scenes),
         rules.sensitivity.output,
         rules.paper_comparison.output,
-    default_target: True

@@ -7,6 +7,11 @@ rule calibration:
         f"{LOGS}/calibration.log",
     benchmark:
         f"{LOGS}/benchmarks/calibration.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=1500,
     params:
         campaign=str(CAMPAIGN),
         settings=calibration_settings,
@@ -16,10 +21,5 @@ rule calibration:
             "min_obs": config["calibration"]["min_observations"],
         },
         code=STAGE_VERSION["calibration"],
-    threads: 1
-    conda:
-        ENV
-    resources:
-        mem_mb=1500,
     script:
         "../scripts/calibration.py"

@@ -8,16 +8,16 @@ rule training:
         f"{LOGS}/training.log",
     benchmark:
         f"{LOGS}/benchmarks/training.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=1000,
     params:
         specimens=specimen_settings,
         extra=config["extra_training"],
         max_per_class=config["classify"]["max_training_samples"],
         code=STAGE_VERSION["training"],
-    threads: 1
-    conda:
-        ENV
-    resources:
-        mem_mb=1000,
     script:
         "../scripts/training.py"
 
@@ -32,6 +32,11 @@ rule labels:
         f"{LOGS}/labels/{{scene}}.log",
     benchmark:
         f"{LOGS}/benchmarks/labels/{{scene}}.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=1500,
     params:
         stage="labels",
         stage_params={
@@ -44,11 +49,6 @@ rule labels:
         chunks=config["chunks"],
         scheduler=config["scheduler"],
         code=STAGE_VERSION["labels"],
-    threads: 1
-    conda:
-        ENV
-    resources:
-        mem_mb=1500,
     script:
         "../scripts/stage.py"
 
@@ -64,15 +64,15 @@ rule summary:
         f"{LOGS}/summary.log",
     benchmark:
         f"{LOGS}/benchmarks/summary.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=1000,
     params:
         features=summary_features,
         labels={name: f"{PROCESSED}/labels/{name}.zarr" for name in CAMP.scenes},
         truth=scene_truth,
         code=STAGE_VERSION["summary"],
-    threads: 1
-    conda:
-        ENV
-    resources:
-        mem_mb=1000,
     script:
         "../scripts/summary.py"

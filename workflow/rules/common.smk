@@ -11,7 +11,6 @@ from surffin.calibration import calibration_set
 from surffin.diagnostics import representative_specimens
 from surffin.errors import SurffinError
 
-
 validate(config, "../schemas/config.schema.yaml")
 
 DEFAULT_CAMPAIGN = Path(workflow.basedir, "data", "raw").resolve()

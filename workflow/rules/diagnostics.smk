@@ -7,17 +7,17 @@ rule calibration_repeat:
         f"{LOGS}/diagnostics/calibration-repeat.log",
     benchmark:
         f"{LOGS}/benchmarks/diagnostics/calibration-repeat.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=1500,
     params:
         campaign=str(CAMPAIGN),
         folders=config["calibration_repeat"],
         settings=calibration_settings,
         stage_params=rules.calibration.params.stage_params,
         code=STAGE_VERSION["calibration"],
-    threads: 1
-    conda:
-        ENV
-    resources:
-        mem_mb=1500,
     script:
         "../scripts/calibration_repeat.py"
 
@@ -45,16 +45,16 @@ rule calibration_diagnostics:
         f"{LOGS}/diagnostics/calibration.log",
     benchmark:
         f"{LOGS}/benchmarks/diagnostics/calibration.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=2000,
     params:
         campaign=str(CAMPAIGN),
         repeat_folders=config["calibration_repeat"],
         settings=diagnostics_settings,
         item_params=diagnostics_item_params,
         code=STAGE_VERSION["diagnostics"],
-    threads: 1
-    conda:
-        ENV
-    resources:
-        mem_mb=2000,
     script:
         "../scripts/calibration_diagnostics.py"

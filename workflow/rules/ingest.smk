@@ -7,15 +7,15 @@ rule ingest:
         f"{LOGS}/ingest/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/ingest/{{item}}.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=1000,
     params:
         campaign=str(CAMPAIGN),
         settings=item_settings,
         chunks=config["chunks"],
         code=STAGE_VERSION["ingest"],
-    threads: 1
-    conda:
-        ENV
-    resources:
-        mem_mb=1000,
     script:
         "../scripts/ingest.py"

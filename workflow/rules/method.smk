@@ -7,17 +7,17 @@ rule aoi:
         f"{LOGS}/aoi/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/aoi/{{item}}.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=1000,
     params:
         stage="aoi",
         stage_params={"window": config["aoi"]["window"], "jump": config["aoi"]["jump"]},
         chunks=config["chunks"],
         scheduler=config["scheduler"],
         code=STAGE_VERSION["aoi"],
-    threads: 1
-    conda:
-        ENV
-    resources:
-        mem_mb=1000,
     script:
         "../scripts/stage.py"
 
@@ -33,17 +33,17 @@ rule reflectance:
         f"{LOGS}/reflectance/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/reflectance/{{item}}.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=1000,
     params:
         stage="reflectance",
         stage_params={},
         chunks=config["chunks"],
         scheduler=config["scheduler"],
         code=STAGE_VERSION["reflectance"],
-    threads: 1
-    conda:
-        ENV
-    resources:
-        mem_mb=1000,
     script:
         "../scripts/stage.py"
 
@@ -59,17 +59,17 @@ rule registration:
         f"{LOGS}/registered/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/registered/{{item}}.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=1000,
     params:
         stage="registration",
         stage_params=registration_params,
         chunks=config["chunks"],
         scheduler=config["scheduler"],
         code=STAGE_VERSION["registration"],
-    threads: 1
-    conda:
-        ENV
-    resources:
-        mem_mb=1000,
     script:
         "../scripts/stage.py"
 
@@ -85,16 +85,16 @@ rule features:
         f"{LOGS}/features/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/features/{{item}}.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=1000,
     params:
         stage="features",
         stage_params=feature_params,
         chunks=config["chunks"],
         scheduler=config["scheduler"],
         code=STAGE_VERSION["features"],
-    threads: 1
-    conda:
-        ENV
-    resources:
-        mem_mb=1000,
     script:
         "../scripts/stage.py"

@@ -36,13 +36,13 @@ rule calibration_figures:
         f"{LOGS}/figures/calibration.log",
     benchmark:
         f"{LOGS}/benchmarks/figures/calibration.tsv"
-    params:
-        code=STAGE_VERSION["figures"],
-    threads: 1
     conda:
         ENV
+    threads: 1
     resources:
         mem_mb=1500,
+    params:
+        code=STAGE_VERSION["figures"],
     script:
         "../scripts/figures.py"
 
@@ -71,13 +71,13 @@ rule classification_figures:
         f"{LOGS}/figures/classification.log",
     benchmark:
         f"{LOGS}/benchmarks/figures/classification.tsv"
-    params:
-        code=STAGE_VERSION["figures"],
-    threads: 1
     conda:
         ENV
+    threads: 1
     resources:
         mem_mb=1000,
+    params:
+        code=STAGE_VERSION["figures"],
     script:
         "../scripts/figures.py"
 
@@ -97,14 +97,14 @@ rule item_figures:
         f"{LOGS}/figures/features/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/figures/features/{{item}}.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=1000,
     params:
         roi=item_roi,
         code=STAGE_VERSION["figures"],
-    threads: 1
-    conda:
-        ENV
-    resources:
-        mem_mb=1000,
     script:
         "../scripts/figures.py"
 
@@ -125,12 +125,12 @@ rule scene_figures:
         f"{LOGS}/figures/labels/{{scene}}.log",
     benchmark:
         f"{LOGS}/benchmarks/figures/labels/{{scene}}.tsv"
-    params:
-        code=STAGE_VERSION["figures"],
-    threads: 1
     conda:
         ENV
+    threads: 1
     resources:
         mem_mb=1000,
+    params:
+        code=STAGE_VERSION["figures"],
     script:
         "../scripts/figures.py"

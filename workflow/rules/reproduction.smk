@@ -8,14 +8,14 @@ rule paper_comparison:
         f"{LOGS}/paper-comparison.log",
     benchmark:
         f"{LOGS}/benchmarks/paper-comparison.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=500,
     params:
         specimens=specimens_by_roughness,
         runtime=runtime_settings,
         code=STAGE_VERSION["comparison"],
-    threads: 1
-    conda:
-        ENV
-    resources:
-        mem_mb=500,
     script:
         "../scripts/paper_comparison.py"

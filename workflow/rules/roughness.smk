@@ -7,14 +7,14 @@ rule roughness_relation:
         f"{LOGS}/roughness/relation.log",
     benchmark:
         f"{LOGS}/benchmarks/roughness/relation.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=1000,
     params:
         specimens=roughness_settings,
         code=STAGE_VERSION["roughness"],
-    threads: 1
-    conda:
-        ENV
-    resources:
-        mem_mb=1000,
     script:
         "../scripts/roughness_relation.py"
 
@@ -29,15 +29,15 @@ rule roughness_map:
         f"{LOGS}/roughness/{{scene}}.log",
     benchmark:
         f"{LOGS}/benchmarks/roughness/{{scene}}.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=1000,
     params:
         chunks=config["chunks"],
         scheduler=config["scheduler"],
         code=STAGE_VERSION["roughness"],
-    threads: 1
-    conda:
-        ENV
-    resources:
-        mem_mb=1000,
     script:
         "../scripts/roughness_map.py"
 
@@ -56,12 +56,12 @@ rule roughness_figures:
         f"{LOGS}/figures/roughness/{{scene}}.log",
     benchmark:
         f"{LOGS}/benchmarks/figures/roughness/{{scene}}.tsv"
-    params:
-        code=STAGE_VERSION["figures"],
-    threads: 1
     conda:
         ENV
+    threads: 1
     resources:
         mem_mb=1000,
+    params:
+        code=STAGE_VERSION["figures"],
     script:
         "../scripts/figures.py"

@@ -19,14 +19,14 @@ rule sensitivity:
         f"{LOGS}/sensitivity.log",
     benchmark:
         f"{LOGS}/benchmarks/sensitivity.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=500,
     params:
         draws=config["sensitivity"]["draws"],
         seed=config["sensitivity"]["seed"],
         code=STAGE_VERSION["sensitivity"],
-    threads: 1
-    conda:
-        ENV
-    resources:
-        mem_mb=500,
     script:
         "../scripts/sensitivity.py"
