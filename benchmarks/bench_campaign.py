@@ -429,7 +429,8 @@ def main():
         runs, calls = campaign_runs(root, args.specimens, args.variants)
         if runs:
             report_campaigns(runs, calls, noop_startup())
-        report_cubes(root, [(5, *map(int, size.split("x"))) for size in args.cubes])
+        if args.cubes:
+            report_cubes(root, [(5, *map(int, size.split("x"))) for size in args.cubes])
     finally:
         shutil.rmtree(root, ignore_errors=True)
 
