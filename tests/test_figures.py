@@ -28,6 +28,8 @@ from surffin.figures import (
     write_table,
 )
 from surffin.geometry import DEFAULT_JUMP, angle_of_incidence
+from surffin.pipeline import run_roughness_map
+from surffin.roughness import roughness_relation
 from surffin.store import write_store
 
 REPO = Path(__file__).resolve().parents[1]
@@ -285,13 +287,17 @@ def stores(calibration, tmp_path):
     labels, ingest = scene_stores()
     summary = tmp_path / "summary.json"
     summary.write_text(json.dumps(SUMMARY))
+    relation = tmp_path / "relation.json"
+    relation.write_text(json.dumps(roughness_relation({"S1": 1.28, "S2": 1.24, "S3": 1.17}, {"S1": 0.007, "S2": 0.026, "S3": 0.053})))
+    features_store = write_store(features, tmp_path / "features.zarr")
     return {
         "calibration": write_store(calibration, tmp_path / "calibration.zarr"),
         "training": write_store(training_set(), tmp_path / "training.zarr"),
-        "features": write_store(features, tmp_path / "features.zarr"),
+        "features": features_store,
         "registered": write_store(registered, tmp_path / "registered.zarr"),
         "labels": write_store(labels, tmp_path / "labels.zarr"),
         "ingest": write_store(ingest, tmp_path / "ingest.zarr"),
+        "roughness": run_roughness_map(tmp_path / "roughness.zarr", features=features_store, relation=relation),
         "summary": summary,
     }
 
@@ -307,13 +313,14 @@ def test_run_figures_writes_every_requested_file(stores, tmp_path):
         "accuracy_table": [out / "accuracy.html", out / "accuracy.csv"],
         "features": out / "features" / "S2.png",
         "labels": out / "labels" / "T1.png",
+        "roughness": out / "roughness" / "T1.png",
     }
     assert set(outputs) == set(FIGURE_KINDS)
     written = run_figures(outputs, roi={"y": [6, 18], "x": [8, 24]}, log_path=tmp_path / "figures.log", **stores)
     expected = {
         "calibration_fit.png", "calibration_r2.png", "calibration_parameters.html", "calibration_parameters.csv",
         "wall_reflectance.png", "feature_space.png", "accuracy.html", "accuracy.csv", "features/S2.png",
-        "labels/T1.png",
+        "labels/T1.png", "roughness/T1.png",
     }
     assert {str(path.relative_to(out)) for path in written} == expected
     assert {str(path.relative_to(out)) for path in out.rglob("*") if path.is_file()} == expected
