@@ -23,14 +23,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import tempfile
 from pathlib import Path
 
 import dask
 import xarray as xr
 import yaml
 
-import surffin
 from surffin.calibration import calibrate
 from surffin.campaign import read_truth
 from surffin.classify import score, training_set
@@ -38,6 +36,8 @@ from surffin.features import UNCERTAINTY, smooth_uncertainty
 from surffin.ingest import ingest_item
 from surffin.stages import labels_stage, process_item
 from surffin.uncertainty import coverage
+
+from _paper import paper_campaign  # benchmarks/_paper.py: this folder is on sys.path when run as a script
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -73,12 +73,7 @@ def main():
     parser.add_argument("--campaign", type=Path, help="a rendered paper campaign (truth in <campaign>-truth)")
     args = parser.parse_args()
     config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
-    with tempfile.TemporaryDirectory() as tmp:
-        campaign = args.campaign or Path(tmp) / "paper"
-        if args.campaign is None:
-            surffin.simulate_campaign(campaign, preset="paper", seed=0)
-        truth_dir = Path(f"{campaign}-truth")
-        camp = surffin.read_campaign(campaign)
+    with paper_campaign(args.campaign) as (camp, truth_dir):
         with dask.config.set(scheduler="threads", num_workers=2):
             cal = config["calibration"]
             calibration = calibrate(camp, window=cal["aoi_window"], jump=cal["aoi_jump"], min_obs=cal["min_observations"])
@@ -86,38 +81,38 @@ def main():
                 name: process_item(ingest_item(camp, name), calibration, roi=item.roi)["features"]
                 for name, item in camp.items.items()
             }
-    header = f"{'':28s}" + "".join(f"{name + ' 1u':>10s}{name + ' 2u':>10s}{name + ' scale':>10s}" for name in UNCERTAINTY)
-    print("share of scored pixels with |error| <= 1 and 2 uncertainties; scale: 1.4826 median |error| / uncertainty")
-    for name, feats in features.items():
-        truth = xr.open_zarr(truth_dir / f"{name}.zarr")
-        scored = (truth["edge_distance"] >= truth.attrs["label_margin"]) & (truth["surface"] >= 0)
-        fit = coverage(feats, truth, mask=scored, unsmoothed=True)
-        expected = {key: {**value, "within_1": value["expected_1"], "within_2": value["expected_2"], "z_scale": math.nan}
-                    for key, value in fit.items()}
-        inflation = feats.attrs.get("uncertainty_inflation", math.inf)
-        print(f"\n{name}: {fit['R0']['n_pixels']} fitted pixels scored; residual correlation F = {inflation:.2f} "
-              f"({feats.attrs.get('uncertainty_effective_pixels', math.nan):.2f} effectively independent pixels)")
-        print(header)
-        print(row("fit sigma", fit))
-        print(row("  Student t expected", expected))
-        for label, value in (("smoothed: independent", 1.0), ("smoothed: fully correlated", math.inf)):
-            print(row(label, coverage(propagated(feats, value), truth, mask=scored)))
-        print(row("smoothed: residual corr.", coverage(feats, truth, mask=scored)))
-    training = training_set({name: (features[name], item.cls, item.roi) for name, item in camp.specimens.items()})
-    bounds = config["classify"]
-    for name, item in camp.scenes.items():
-        truth_label, truth_classes = read_truth(item.truth, width=camp.camera.width, height=camp.camera.height)
-        print(f"\nscene {name}: accuracy (unclassified = wrong) and unclassified pixels by reason")
-        for label, options in (
-            ("no bounds", {}),
-            (f"max_uncertainty {bounds['max_uncertainty']}", {"max_uncertainty": bounds["max_uncertainty"]}),
-            (f"  + max_distance {bounds['max_distance']}", {"max_uncertainty": bounds["max_uncertainty"],
-                                                            "max_distance": bounds["max_distance"]}),
-        ):
-            labels = labels_stage(features[name], training, **options)
-            accuracy = [score(labels[v], truth_label, truth_classes, training.attrs["classes"])["accuracy"]
-                        for v in ("label", "label_filtered")]
-            print(f"  {label:40s} {accuracy[0]:.4f} raw, {accuracy[1]:.4f} filtered; {labels['label'].attrs['unclassified']}")
+        header = f"{'':28s}" + "".join(f"{name + ' 1u':>10s}{name + ' 2u':>10s}{name + ' scale':>10s}" for name in UNCERTAINTY)
+        print("share of scored pixels with |error| <= 1 and 2 uncertainties; scale: 1.4826 median |error| / uncertainty")
+        for name, feats in features.items():
+            truth = xr.open_zarr(truth_dir / f"{name}.zarr")
+            scored = (truth["edge_distance"] >= truth.attrs["label_margin"]) & (truth["surface"] >= 0)
+            fit = coverage(feats, truth, mask=scored, unsmoothed=True)
+            expected = {key: {**value, "within_1": value["expected_1"], "within_2": value["expected_2"], "z_scale": math.nan}
+                        for key, value in fit.items()}
+            inflation = feats.attrs.get("uncertainty_inflation", math.inf)
+            print(f"\n{name}: {fit['R0']['n_pixels']} fitted pixels scored; residual correlation F = {inflation:.2f} "
+                  f"({feats.attrs.get('uncertainty_effective_pixels', math.nan):.2f} effectively independent pixels)")
+            print(header)
+            print(row("fit sigma", fit))
+            print(row("  Student t expected", expected))
+            for label, value in (("smoothed: independent", 1.0), ("smoothed: fully correlated", math.inf)):
+                print(row(label, coverage(propagated(feats, value), truth, mask=scored)))
+            print(row("smoothed: residual corr.", coverage(feats, truth, mask=scored)))
+        training = training_set({name: (features[name], item.cls, item.roi) for name, item in camp.specimens.items()})
+        bounds = config["classify"]
+        for name, item in camp.scenes.items():
+            truth_label, truth_classes = read_truth(item.truth, width=camp.camera.width, height=camp.camera.height)
+            print(f"\nscene {name}: accuracy (unclassified = wrong) and unclassified pixels by reason")
+            for label, options in (
+                ("no bounds", {}),
+                (f"max_uncertainty {bounds['max_uncertainty']}", {"max_uncertainty": bounds["max_uncertainty"]}),
+                (f"  + max_distance {bounds['max_distance']}", {"max_uncertainty": bounds["max_uncertainty"],
+                                                                "max_distance": bounds["max_distance"]}),
+            ):
+                labels = labels_stage(features[name], training, **options)
+                accuracy = [score(labels[v], truth_label, truth_classes, training.attrs["classes"])["accuracy"]
+                            for v in ("label", "label_filtered")]
+                print(f"  {label:40s} {accuracy[0]:.4f} raw, {accuracy[1]:.4f} filtered; {labels['label'].attrs['unclassified']}")
 
 
 if __name__ == "__main__":
