@@ -203,10 +203,8 @@ ROUGH_SPECIMENS = [name for name, item in CAMP.specimens.items() if item.roughne
 
 
 def roughness_settings(wildcards):
-    return {
-        name: {**specimen_settings(wildcards)[name], "roughness_mm": CAMP.items[name].roughness_mm}
-        for name in ROUGH_SPECIMENS
-    }
+    specimens = specimen_settings(wildcards)
+    return {name: {**specimens[name], "roughness_mm": CAMP.items[name].roughness_mm} for name in ROUGH_SPECIMENS}
 
 
 def roughness_features(wildcards):
@@ -242,15 +240,15 @@ def comparison_inputs(wildcards):
     return inputs
 
 
-SCENE_JOBS = ("ingest", "aoi", "reflectance", "registered", "features", "labels")
+SCENE_RULES = ("ingest", "aoi", "reflectance", "registration", "features", "labels")
 
 
 def runtime_settings(wildcards):
-    """Per scene, its view count and the benchmark files of its chain from raw views to labels."""
+    """Per scene, its view count and the benchmark files of its rules' jobs from raw views to labels."""
     return {
         name: {
             "views": len(item.views),
-            "benchmarks": [f"{LOGS}/benchmarks/{stage}/{name}.tsv" for stage in SCENE_JOBS],
+            "benchmarks": [expand(getattr(rules, rule).benchmark, item=name, scene=name)[0] for rule in SCENE_RULES],
         }
         for name, item in CAMP.scenes.items()
     }

@@ -1,16 +1,22 @@
+from surffin.sensitivity import OUTPUTS as SENSITIVITY_FILES
+
+# run_sensitivity names its files (SENSITIVITY_FILES) in the folder it is given.
+SENSITIVITY = {key: f"{PROCESSED}/sensitivity/{name}" for key, name in SENSITIVITY_FILES.items()}
+
+
 rule sensitivity:
     output:
-        table=f"{PROCESSED}/sensitivity/sensitivity.csv",
-        store=directory(f"{PROCESSED}/sensitivity/sensitivity.zarr"),
-        slopes=f"{PROCESSED}/sensitivity/slopes.csv",
+        table=SENSITIVITY["table"],
+        store=directory(SENSITIVITY["store"]),
+        slopes=SENSITIVITY["slopes"],
         separation_figure=report(
-            f"{PROCESSED}/sensitivity/separation.png",
+            SENSITIVITY["separation_figure"],
             caption="../report/sensitivity_separation.rst",
             category="5. Sensitivity",
             labels={"figure": "two views against separation (Fig. 11)"},
         ),
         views_figure=report(
-            f"{PROCESSED}/sensitivity/views.png",
+            SENSITIVITY["views_figure"],
             caption="../report/sensitivity_views.rst",
             category="5. Sensitivity",
             labels={"figure": "K views over 45 deg (Fig. 12)"},
