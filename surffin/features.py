@@ -512,8 +512,6 @@ def variance_inflation(correlation: xr.DataArray, size: int = DEFAULT_SIZE, *, s
     float
         F; NaN where ``correlation`` is.
     """
-    from scipy.signal import correlate2d
-
     size, sigma, weights = _smoothing(size, sigma)
     reach = size - 1
     _check_grid(correlation, "correlation", ("lag_y", "lag_x"))
@@ -522,8 +520,11 @@ def variance_inflation(correlation: xr.DataArray, size: int = DEFAULT_SIZE, *, s
         rho = correlation.sel(lag_y=lags, lag_x=lags).transpose("lag_y", "lag_x").values
     except KeyError as exc:
         raise ValueError(f"correlation must cover lags -{reach}..{reach} for a {size}x{size} kernel ({exc})") from exc
+    # The kernel is separable, and so is its autocorrelation (what scipy.signal.correlate2d
+    # of the kernel with itself gives; importing scipy.signal costs a job ~1 s).
+    autocorrelation = np.correlate(weights, weights, mode="full")
     kernel = np.outer(weights, weights)
-    return float((correlate2d(kernel, kernel) * rho).sum() / (kernel * kernel).sum())
+    return float((np.outer(autocorrelation, autocorrelation) * rho).sum() / (kernel * kernel).sum())
 
 
 def local_std(

@@ -418,6 +418,18 @@ def test_variance_inflation_limits():
         variance_inflation(delta.isel(lag_y=slice(1, -1), lag_x=slice(1, -1)), 7)
 
 
+def test_variance_inflation_is_the_double_sum_over_the_kernel():
+    lags = np.arange(-6, 7)
+    rho = np.random.default_rng(3).uniform(-0.2, 1.0, (13, 13))
+    correlation = xr.DataArray(rho, dims=("lag_y", "lag_x"), coords={"lag_y": lags, "lag_x": lags})
+    kernel = gaussian_kernel(7, 1.4)
+    pixels = [(i, j) for i in range(7) for j in range(7)]
+    double_sum = sum(
+        kernel[p] * kernel[q] * rho[p[0] - q[0] + 6, p[1] - q[1] + 6] for p in pixels for q in pixels
+    )
+    assert variance_inflation(correlation, 7) == pytest.approx(double_sum / (kernel**2).sum(), rel=1e-12)
+
+
 def views_of(noise, shape):
     """Registered reflectance and AOI (view, y, x) of 5 views of R0 = 0.8, n = 1.3 plus ``noise``."""
     theta = np.deg2rad(np.array([0.0, 12, 24, 36, 48]))[:, None, None] + np.zeros((5, *shape))
