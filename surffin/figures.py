@@ -96,17 +96,17 @@ _RANGE = (2, 98)
 # --- helpers ----------------------------------------------------------------------------------
 
 
-def _figure(width: float, height: float):
-    """A new matplotlib Figure of ``width`` x ``height`` inches, constrained layout."""
+def _figure(width: float, height: float, layout: str | None = "constrained"):
+    """A new matplotlib Figure of ``width`` x ``height`` inches, constrained layout unless told."""
     from matplotlib.figure import Figure
 
-    return Figure(figsize=(width, height), layout="constrained")
+    return Figure(figsize=(width, height), layout=layout)
 
 
 def _save(fig, path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI)
+    fig.savefig(path, dpi=DPI, pil_kwargs={"compress_level": 1})
     return path
 
 
@@ -445,8 +445,9 @@ def plot_features(
     uncertainties = [f"{name}_uncertainty" for name in UNCERTAINTY]
     features = features[[*FEATURES, *(name for name in uncertainties if name in features)]].load()
     region = features if roi is None else select_roi(features, roi)
-    fig = _figure(19.0, 9.5)
-    axes = fig.subplots(2, 3)
+    # A fixed layout: the constrained one took 0.7 of this figure's ~2 s, and the figure is drawn for every item.
+    fig = _figure(19.0, 9.5, layout=None)
+    axes = fig.subplots(2, 3, gridspec_kw={"left": 0.04, "right": 0.97, "top": 0.91, "bottom": 0.15, "wspace": 0.25, "hspace": 0.3})
     panels = (
         ("R0", "R0: reflectance at normal incidence", "viridis", _RANGE, False),
         ("n", "n: scattering coefficient", "cividis", _RANGE, False),
