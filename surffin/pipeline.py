@@ -5,6 +5,8 @@ Each function here is what one workflow rule runs (through a short script in
 :func:`run_stage` serves every per-item stage of :mod:`surffin.stages`: it
 opens the input stores, runs the stage under the chosen dask scheduler with
 progress in the log, and writes the output store atomically with provenance.
+:func:`run_item` runs an item's whole chain (ingest to features) in one
+process, writing the same stores.
 """
 
 from __future__ import annotations
@@ -31,6 +33,8 @@ __all__ = [
     "dask_scheduler",
     "run_ingest",
     "run_stage",
+    "ITEM_CHAIN",
+    "run_item",
     "run_calibration",
     "check_calibration",
     "run_training",
@@ -53,6 +57,15 @@ STAGES = {
     "labels": stages.labels_stage,
     "roughness": stages.roughness_stage,
 }
+
+#: An item's chain after its ingest, as :func:`run_item` runs it: (stage, output store,
+#: input stores by the stage function's argument names); ``calibration`` is the campaign's.
+ITEM_CHAIN = (
+    ("aoi", "aoi", ("ingest",)),
+    ("reflectance", "reflectance", ("ingest", "aoi", "calibration")),
+    ("registration", "registered", ("ingest", "aoi", "reflectance")),
+    ("features", "features", ("registered", "reflectance", "aoi")),
+)
 
 
 @contextlib.contextmanager
@@ -125,6 +138,36 @@ def _timed_write(ds, output, chunks) -> Path:
     return path
 
 
+def _ingest(campaign, item, store, chunks) -> Path:
+    from surffin.campaign import read_campaign
+    from surffin.ingest import ingest_item
+
+    start = time.perf_counter()
+    camp = read_campaign(campaign, require_calibration=False)
+    ds = ingest_item(camp, item)
+    log.info("ingest %s: %d views, cube %s", item, ds.sizes["view"], dict(ds.sizes))
+    # The cube is in memory: writing it needs no worker threads (nor a dask.distributed
+    # client, which dask looks for, importing it, when no scheduler is set).
+    with dask_scheduler("synchronous"):
+        path = _timed_write(ds, store, chunks)
+    log.info("ingest done in %.2f s", time.perf_counter() - start)
+    return path
+
+
+def _stage(stage, output, stores, params, chunks) -> Path:
+    start = time.perf_counter()
+    inputs = {name: open_store(path) for name, path in stores.items()}
+    log.info("%s: inputs %s, parameters %s", stage, {k: str(v) for k, v in stores.items()}, params)
+    ds = STAGES[stage](**inputs, **params)
+    ds.attrs = {
+        **ds.attrs,
+        **provenance(stage, params, {name: str(path) for name, path in stores.items()}),
+    }
+    path = _timed_write(ds, output, chunks)
+    log.info("%s done in %.2f s", stage, time.perf_counter() - start)
+    return path
+
+
 def run_ingest(
     campaign: str | os.PathLike,
     item: str,
@@ -134,14 +177,8 @@ def run_ingest(
     log_path: str | os.PathLike | None = None,
 ) -> Path:
     """Read an item's view files and write its ingest store (``ingest/<item>.zarr``)."""
-    from surffin.campaign import read_campaign
-    from surffin.ingest import ingest_item
-
     with logging_to(log_path):
-        camp = read_campaign(campaign, require_calibration=False)
-        ds = ingest_item(camp, item)
-        log.info("ingest %s: %d views, cube %s", item, ds.sizes["view"], dict(ds.sizes))
-        return _timed_write(ds, store, chunks)
+        return _ingest(campaign, item, store, chunks)
 
 
 def run_stage(
@@ -175,19 +212,65 @@ def run_stage(
     log_path : path-like, optional
         The job's log file.
     """
-    params = dict(params or {})
     with logging_to(log_path), dask_scheduler(scheduler, threads):
+        return _stage(stage, output, stores, dict(params or {}), chunks)
+
+
+def run_item(
+    campaign: str | os.PathLike,
+    item: str,
+    outputs: Mapping[str, str | os.PathLike],
+    *,
+    calibration: str | os.PathLike,
+    params: Mapping[str, Mapping] | None = None,
+    chunks: Mapping[str, int] | None = None,
+    scheduler: str | None = None,
+    threads: int = 1,
+    log_path: str | os.PathLike | None = None,
+) -> dict[str, Path]:
+    """Run an item's whole chain, ingest to features, in this one process.
+
+    Writes the same five stores as :func:`run_ingest` followed by
+    :func:`run_stage` for each step of :data:`ITEM_CHAIN` (each store complete
+    before the next stage reads it), but pays the start-up of a process once.
+
+    Parameters
+    ----------
+    campaign, item
+        As for :func:`run_ingest`.
+    outputs : mapping of str to path-like
+        The stores by name: ``ingest`` and every output name of :data:`ITEM_CHAIN`.
+    calibration : path-like
+        The calibration store.
+    params : mapping of str to mapping, optional
+        Each stage's parameters by stage name (a stage not named gets none).
+    chunks, scheduler, threads, log_path
+        As for :func:`run_stage`.
+
+    Returns
+    -------
+    dict of str to Path
+        The written stores by name.
+    """
+    params = dict(params or {})
+    unknown = set(params) - {stage for stage, _, _ in ITEM_CHAIN}
+    names = {"ingest", *(output for _, output, _ in ITEM_CHAIN)}
+    if unknown or set(outputs) != names:
+        raise ValueError(
+            f"run_item: outputs must be named {sorted(names)}, got {sorted(outputs)}; "
+            f"parameters given for stages not in the chain: {sorted(unknown) or 'none'}"
+        )
+    with logging_to(log_path):
         start = time.perf_counter()
-        inputs = {name: open_store(path) for name, path in stores.items()}
-        log.info("%s: inputs %s, parameters %s", stage, {k: str(v) for k, v in stores.items()}, params)
-        ds = STAGES[stage](**inputs, **params)
-        ds.attrs = {
-            **ds.attrs,
-            **provenance(stage, params, {name: str(path) for name, path in stores.items()}),
-        }
-        path = _timed_write(ds, output, chunks)
-        log.info("%s done in %.2f s", stage, time.perf_counter() - start)
-        return path
+        _ingest(campaign, item, outputs["ingest"], chunks)
+        # Inputs are recorded as given, as the per-stage rules record theirs.
+        stores = {**outputs, "calibration": calibration}
+        with dask_scheduler(scheduler, threads):
+            for stage, output, inputs in ITEM_CHAIN:
+                stores_in = {name: stores[name] for name in inputs}
+                _stage(stage, outputs[output], stores_in, dict(params.get(stage, {})), chunks)
+        log.info("item %s done in %.2f s", item, time.perf_counter() - start)
+        return {name: Path(path) for name, path in outputs.items()}
 
 
 def run_calibration(

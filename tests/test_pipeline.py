@@ -1,0 +1,71 @@
+"""run_item: an item's chain in one call writes what the stage-by-stage calls write."""
+
+import math
+
+import pytest
+import xarray as xr
+
+import surffin
+from surffin.pipeline import run_calibration, run_ingest, run_item, run_stage
+
+#: The tiny camera needs 8x the paper camera's depth-jump threshold (tests/data/tiny-config.yaml).
+JUMP = 0.16
+CHUNKS = {"y": 32, "x": 32}
+STORES = ("ingest", "aoi", "reflectance", "registered", "features")
+FEATURES = {"size": 5, "variability_size": 7, "min_views": 2, "min_spread": math.radians(10)}
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pipeline")
+    surffin.simulate_campaign(root / "raw", preset="tiny", seed=0)
+    camp = surffin.read_campaign(root / "raw")
+    return camp, run_calibration(camp.path, root / "calibration.zarr", params={"jump": JUMP})
+
+
+def stage_by_stage(camp, calibration, item, folder):
+    """The chain as the per-stage rules run it, one call per stage."""
+    store = {name: folder / name / f"{item}.zarr" for name in STORES}
+    run_ingest(camp.path, item, store["ingest"], chunks=CHUNKS)
+    run_stage("aoi", store["aoi"], stores={"ingest": store["ingest"]}, params={"jump": JUMP}, chunks=CHUNKS)
+    inputs = {"ingest": store["ingest"], "aoi": store["aoi"]}
+    run_stage("reflectance", store["reflectance"], stores={**inputs, "calibration": calibration}, chunks=CHUNKS)
+    inputs["reflectance"] = store["reflectance"]
+    run_stage("registration", store["registered"], stores=inputs, chunks=CHUNKS)
+    del inputs["ingest"]
+    run_stage("features", store["features"], stores={"registered": store["registered"], **inputs}, params=FEATURES,
+              chunks=CHUNKS)
+    return store
+
+
+def test_run_item_writes_the_stores_of_the_stages(campaign, tmp_path):
+    camp, calibration = campaign
+    expected = stage_by_stage(camp, calibration, "T1", tmp_path / "stages")
+    outputs = {name: tmp_path / "item" / name / "T1.zarr" for name in STORES}
+    log = tmp_path / "item.log"
+    written = run_item(
+        camp.path, "T1", outputs, calibration=calibration, params={"aoi": {"jump": JUMP}, "features": FEATURES},
+        chunks=CHUNKS, log_path=log,
+    )
+    assert written == outputs
+    for name in STORES:
+        ours, theirs = xr.open_zarr(outputs[name]).load(), xr.open_zarr(expected[name]).load()
+        assert {k: str(v).replace("/item/", "/") for k, v in ours.attrs.pop("surffin_inputs").items()} == {
+            k: str(v).replace("/stages/", "/") for k, v in theirs.attrs.pop("surffin_inputs").items()
+        }
+        xr.testing.assert_identical(ours, theirs)
+    assert xr.open_zarr(outputs["features"])["R0"].notnull().mean() > 0.5
+    text = log.read_text()
+    for stage in ("ingest", "aoi", "reflectance", "registration", "features", "item T1"):
+        assert f"{stage} done in" in text
+
+
+def test_run_item_names_wrong_outputs_and_stages(campaign, tmp_path):
+    camp, calibration = campaign
+    outputs = {name: tmp_path / name for name in STORES if name != "registered"}
+    with pytest.raises(ValueError, match="registered"):
+        run_item(camp.path, "T1", outputs, calibration=calibration)
+    outputs["registered"] = tmp_path / "registered"
+    with pytest.raises(ValueError, match="smoothing"):
+        run_item(camp.path, "T1", outputs, calibration=calibration, params={"smoothing": {}})
+    assert not any(path.exists() for path in outputs.values())
