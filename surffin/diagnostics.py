@@ -764,7 +764,7 @@ def run_calibration_diagnostics(
 
     item_params = dict(item_params or {})
     with logging_to(log_path):
-        camp = read_campaign(campaign, require_calibration=False)
+        camp = read_campaign(campaign, require_calibration=False, check_views=False)
         stores = {"first": calibration, **({} if repeat is None else {"repeat": repeat})}
         calibrations = {}
         for name, path in stores.items():

@@ -127,7 +127,16 @@ def dask_scheduler(scheduler: str | None, threads: int = 1) -> Iterator[None]:
         with Client(scheduler):
             yield
     else:
-        with dask.config.set(scheduler=scheduler, num_workers=threads), _LogProgress():
+        from dask.base import named_schedulers
+
+        if scheduler not in named_schedulers:
+            raise ValueError(
+                f"unknown dask scheduler {scheduler!r}: expected threads, processes, synchronous or the "
+                "address of a dask.distributed scheduler (e.g. tcp://10.0.0.1:8786)"
+            )
+        # The scheduler's function, not its name: given a name, dask imports dask.distributed
+        # (0.4 s, every job) to look for a client first.
+        with dask.config.set(scheduler=named_schedulers[scheduler], num_workers=threads), _LogProgress():
             yield
 
 
@@ -138,12 +147,17 @@ def _timed_write(ds, output, chunks) -> Path:
     return path
 
 
+# Jobs read the campaign without checking every view file's header (check_views=False): that
+# costs ~3 ms a file, for every item's job, and the files a job reads are checked as they are
+# read (viewfile.read_view); `surffin check` and the workflow's start check them all once.
+
+
 def _ingest(campaign, item, store, chunks) -> Path:
     from surffin.campaign import read_campaign
     from surffin.ingest import ingest_item
 
     start = time.perf_counter()
-    camp = read_campaign(campaign, require_calibration=False)
+    camp = read_campaign(campaign, require_calibration=False, check_views=False)
     ds = ingest_item(camp, item)
     log.info("ingest %s: %d views, cube %s", item, ds.sizes["view"], dict(ds.sizes))
     # The cube is in memory: writing it needs no worker threads (nor a dask.distributed
@@ -293,7 +307,7 @@ def run_calibration(
 
     params = dict(params or {})
     with logging_to(log_path):
-        camp = read_campaign(campaign)
+        camp = read_campaign(campaign, check_views=False)
         views = None if folders is None else calibration_set(camp, folders["wall"], folders["reference"])
         ds = calibrate(camp, calibration=views, **params)
         return _timed_write(ds, output, None)

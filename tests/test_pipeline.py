@@ -6,7 +6,7 @@ import pytest
 import xarray as xr
 
 import surffin
-from surffin.pipeline import run_calibration, run_ingest, run_item, run_stage
+from surffin.pipeline import dask_scheduler, run_calibration, run_ingest, run_item, run_stage
 
 #: The tiny camera needs 8x the paper camera's depth-jump threshold (tests/data/tiny-config.yaml).
 JUMP = 0.16
@@ -69,3 +69,9 @@ def test_run_item_names_wrong_outputs_and_stages(campaign, tmp_path):
     with pytest.raises(ValueError, match="smoothing"):
         run_item(camp.path, "T1", outputs, calibration=calibration, params={"smoothing": {}})
     assert not any(path.exists() for path in outputs.values())
+
+
+def test_an_unknown_scheduler_name_is_an_error_naming_it():
+    with pytest.raises(ValueError, match="unknown dask scheduler 'thread'"):
+        with dask_scheduler("thread"):
+            pass
