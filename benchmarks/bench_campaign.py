@@ -20,11 +20,11 @@ with ``snakemake --cores 2`` and the repository's default configuration.
   ``benchmark:`` files under the logs folder), median and maximum per rule.
 - **where the wall time goes**: the budget is ``cores x wall`` core-seconds. Each job holds
   ``threads`` cores for ``s`` seconds (benchmark TSV). Of that, the *stage time* is what the
-  stage itself logged as its work (``<stage> done in X s`` of :func:`surffin.pipeline.run_stage`:
-  opening inputs, computing, writing the store); the rest of ``s`` is *job start-up*: the new
-  Python process, snakemake's script preamble, imports, and exit. Rules that do not log a
-  total (ingest, calibration, training, summary, figures) are charged the median start-up of
-  the ``run_stage`` jobs of the same run. What the jobs do not hold is *idle*: snakemake parsing
+  stage itself logged as its work (``<stage> done in X s`` of :func:`surffin.pipeline.run_stage`
+  and ``run_ingest``, ``item <name> done in X s`` of ``run_item``: opening inputs, computing,
+  writing the stores); the rest of ``s`` is *job start-up*: the new Python process, snakemake's
+  script preamble, imports, and exit. Rules that do not log a total (calibration, training,
+  summary, figures) are charged the median start-up of the jobs that do, in the same run. What the jobs do not hold is *idle*: snakemake parsing
   the workflow and validating the campaign, building the DAG, and its bookkeeping between jobs.
   **overhead** = (start-up + idle) / budget = 1 - stage time / budget; **no-overhead
   spec/min** = spec/min / (stage share), the rate if only the stages' own work took time (with
@@ -37,8 +37,11 @@ with ``snakemake --cores 2`` and the repository's default configuration.
   incl. first use** also charges every job the median of it.
 - ``--variants`` runs each campaign also with other settings, to measure the defaults against
   them: ``item stages 2 threads`` (``--set-threads``: one per-item stage at a time, with two
-  dask threads; the defaults run them at one thread, two jobs at once) and ``ilp scheduler``
-  (snakemake's ILP job scheduler instead of the greedy one of ``profiles/default``).
+  dask threads; the defaults run them at one thread, two jobs at once), ``ilp scheduler``
+  (snakemake's ILP job scheduler instead of the greedy one of ``profiles/default``), ``chunks
+  256`` (the former default chunks, 256 x 256, against 512 x 512), ``item jobs`` (config
+  ``jobs: item``: one job per item from view files to features) and ``item jobs, scene
+  figures`` (the same with ``item_figures: scenes``: no feature figure per specimen).
 
 Targets: >= 30 specimens/min, overhead <= 50 %, peak memory per job <= 1 GB and not growing
 with N.
@@ -80,14 +83,18 @@ REPO = Path(__file__).resolve().parents[1]
 CORES = 2
 #: Per-item stages: the rules the ``item stages 2 threads`` variant runs at two threads.
 ITEM_STAGES = ("aoi", "reflectance", "registration", "features", "labels")
-#: Labels and extra snakemake arguments of the runs of each campaign.
-#: Variants of a campaign run: name -> extra snakemake arguments. The first is the default.
+#: Variants of a campaign run: name -> (extra snakemake arguments, config overrides). The
+#: overrides go through a config file: ``--config`` would pass nested numbers as strings.
 VARIANTS = {
-    "default": (),
-    "item stages 2 threads": ("--set-threads", *(f"{rule}=2" for rule in ITEM_STAGES)),
-    "ilp scheduler": ("--scheduler", "ilp"),
+    "default": ((), {}),
+    "item stages 2 threads": (("--set-threads", *(f"{rule}=2" for rule in ITEM_STAGES)), {}),
+    "ilp scheduler": (("--scheduler", "ilp"), {}),
+    "chunks 256": ((), {"chunks": {"y": 256, "x": 256}}),
+    "item jobs": ((), {"jobs": "item"}),
+    "item jobs, scene figures": ((), {"jobs": "item", "item_figures": "scenes"}),
 }
-_DONE = re.compile(r"INFO \w+ done in ([0-9.]+) s$", re.M)
+#: A job's logged work: the last "<stage> done in" line (an item job logs each stage, then its total).
+_DONE = re.compile(r"INFO (?:item \S+|\w+) done in ([0-9.]+) s$", re.M)
 
 
 # --- output --------------------------------------------------------------------------------
@@ -175,24 +182,28 @@ def parse_jobs(output: str) -> list[Job]:
         threads = re.search(r"^\s+threads: (\d+)$", block, re.M)
         values = dict(zip(*(line.split("\t") for line in Path(bench.group(1)).read_text().splitlines()[:2])))
         log_text = Path(re.search(r"^\s+log: (.+)$", block, re.M).group(1)).read_text()
-        done = _DONE.search(log_text)
+        done = _DONE.findall(log_text)
         jobs.append(
             Job(
                 rule=rule,
                 threads=int(threads.group(1)) if threads else 1,
                 seconds=float(values["s"]),
                 max_rss_mb=float(values["max_rss"]),
-                stage_seconds=float(done.group(1)) if done else None,
+                stage_seconds=float(done[-1]) if done else None,
             )
         )
     return jobs
 
 
-def process(campaign: Path, workdir: Path, *extra: str) -> tuple[float, list[Job]]:
+def process(campaign: Path, workdir: Path, extra: tuple[str, ...], overrides: dict) -> tuple[float, list[Job]]:
     """Run ``snakemake --cores 2`` on a campaign; returns its wall time and jobs."""
     cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir)]
-    cmd += ["--cores", str(CORES), *extra, "--config", f"campaign={campaign}"]
-    cmd += [f"processed={workdir / 'processed'}", f"logs={workdir / 'logs'}"]
+    cmd += ["--cores", str(CORES), *extra]
+    if overrides:
+        configfile = workdir / "overrides.json"  # JSON is YAML
+        configfile.write_text(json.dumps(overrides))
+        cmd += ["--configfiles", str(configfile)]
+    cmd += ["--config", f"campaign={campaign}", f"processed={workdir / 'processed'}", f"logs={workdir / 'logs'}"]
     start = time.perf_counter()
     run = subprocess.run(cmd, capture_output=True, text=True, cwd=workdir)
     wall = time.perf_counter() - start
@@ -253,11 +264,10 @@ def campaign_runs(root: Path, sizes: list[int], variants: list[str]) -> tuple[li
         seconds = render(campaign, n)
         print(f"rendered {n} specimens in {seconds:.0f} s ({load()})", flush=True)
         for label in variants:
-            extra = VARIANTS[label]
             workdir = root / f"run-{n}-{len(runs)}"
             workdir.mkdir()
             before = load()
-            wall, jobs = process(campaign, workdir, *extra)
+            wall, jobs = process(campaign, workdir, *VARIANTS[label])
             runs.append(Run(n, label, wall, jobs, before))
             print(f"processed {n} specimens ({label}) in {wall:.0f} s ({before} before)", flush=True)
             if not calls:

@@ -1,6 +1,7 @@
 """Snakemake on a tiny synthetic campaign, in temporary working directories."""
 
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -36,9 +37,9 @@ def snakemake(workdir, *args, config=(), overrides=None, snakefile=REPO / "Snake
     return subprocess.run(cmd, capture_output=True, text=True, cwd=workdir, timeout=600)
 
 
-def planned_jobs(workdir, **kwargs):
-    """Rule name -> job count of a dry run."""
-    run = snakemake(workdir, "--dry-run", **kwargs)
+def planned_jobs(workdir, *targets, **kwargs):
+    """Rule name -> job count of a dry run (of the default target, or of ``targets``)."""
+    run = snakemake(workdir, "--dry-run", *targets, **kwargs)
     out = run.stdout + run.stderr
     assert run.returncode == 0, out
     if "Nothing to be done" in out:
@@ -189,6 +190,14 @@ def test_unknown_config_key_fails_before_any_job(tmp_path):
     assert not (tmp_path / "processed").exists()
 
 
+def test_bad_jobs_value_fails_before_any_job_naming_the_key(tmp_path):
+    surffin.simulate_campaign(tmp_path / "raw", preset="tiny", seed=0)
+    run = snakemake(tmp_path, config=["jobs=items"])
+    assert run.returncode != 0
+    assert "'items' is not one of ['stage', 'item']" in run.stderr + run.stdout and "jobs" in run.stderr + run.stdout
+    assert not (tmp_path / "processed").exists()
+
+
 def test_bad_campaign_fails_before_any_job_naming_the_file(tmp_path):
     surffin.simulate_campaign(tmp_path / "raw", preset="tiny", seed=0)
     yaml_path = tmp_path / "raw" / "campaign.yaml"
@@ -209,3 +218,69 @@ def test_workflow_files_are_formatted():
 def test_lint_is_clean(done):
     run = snakemake(done, "--lint")
     assert run.returncode == 0, run.stdout + run.stderr
+
+
+# --- config jobs: item ---------------------------------------------------------------------
+
+
+def normalised(ds, *processed):
+    """``ds`` with any of the ``processed`` folders written as ``PROCESSED`` in its recorded input stores."""
+    folders = "|".join(re.escape(str(folder)) for folder in processed)
+    inputs = {
+        name: re.sub(f"^({folders})/", "PROCESSED/", value) if isinstance(value, str) else value
+        for name, value in ds.attrs["surffin_inputs"].items()
+    }
+    return ds.assign_attrs(surffin_inputs=inputs)
+
+
+@pytest.fixture(scope="module")
+def item_jobs(done, tmp_path_factory):
+    """The features stores of ``done``'s campaign made by item jobs, with ``done``'s calibration."""
+    workdir = tmp_path_factory.mktemp("items")
+    shutil.copytree(done / "raw", workdir / "raw")
+    targets = [str(workdir / "processed" / "features" / f"{name}.zarr") for name in surffin.read_campaign(done / "raw").items]
+    config = ["jobs=item", f"calibration_store={done / 'processed' / 'calibration.zarr'}"]
+    run = snakemake(workdir, *targets, config=config)
+    assert run.returncode == 0, run.stderr[-4000:]
+    return workdir, targets, config
+
+
+def test_item_jobs_write_the_stores_of_the_stage_jobs(done, item_jobs):
+    workdir, _, _ = item_jobs
+    for name in surffin.read_campaign(done / "raw").items:
+        for stage in ("ingest", "aoi", "reflectance", "registered", "features"):
+            # the item jobs read the calibration of `done`, by its path there
+            ours, theirs = (
+                normalised(xr.open_zarr(folder / stage / f"{name}.zarr"), workdir / "processed", done / "processed")
+                for folder in (workdir / "processed", done / "processed")
+            )
+            xr.testing.assert_identical(ours.load(), theirs.load())
+        log = (workdir / "logs" / "item" / f"{name}.log").read_text()
+        assert all(f"{stage} done in" in log for stage in ("ingest", "aoi", "reflectance", "registration", "features"))
+
+
+def test_item_jobs_rerun_whole_chains(item_jobs):
+    workdir, targets, config = item_jobs
+    assert planned_jobs(workdir, *targets, config=config) == {}
+    assert planned_jobs(workdir, *targets, config=config, overrides={"features": {"smoothing": 5}}) == {"item": 5}
+    # a view replaced: that item's chain only (the view is put back as it was after the dry run)
+    view = surffin.read_campaign(workdir / "raw").specimens["S2"].views[1]
+    original, stat = view.read_bytes(), view.stat()
+    data = dict(np.load(view))
+    np.savez(view, **{**data, "intensity": data["intensity"] * 1.01})
+    try:
+        assert planned_jobs(workdir, *targets, config=config) == {"item": 1}
+    finally:
+        view.write_bytes(original)
+        os.utime(view, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+
+
+def test_switching_to_item_jobs_reruns_every_chain_once(done):
+    jobs = planned_jobs(done, config=["jobs=item"])
+    assert jobs["item"] == 5 and "features" not in jobs and "calibration" not in jobs
+
+
+def test_item_figures_of_scenes_only_or_none(item_jobs):
+    workdir, _, config = item_jobs
+    assert planned_jobs(workdir, config=[*config, "item_figures=scenes"])["item_figures"] == 1
+    assert "item_figures" not in planned_jobs(workdir, config=[*config, "item_figures=none"])

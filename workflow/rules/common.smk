@@ -115,6 +115,10 @@ def item_roi(wildcards):
     return roi_of(wildcards.item)
 
 
+def aoi_params(wildcards):
+    return {"window": config["aoi"]["window"], "jump": config["aoi"]["jump"]}
+
+
 def registration_params(wildcards):
     return {"method": config["registration"]["method"], "roi": roi_of(wildcards.item)}
 
@@ -131,6 +135,16 @@ def feature_settings():
 
 def feature_params(wildcards):
     return {"roi": roi_of(wildcards.item), **feature_settings()}
+
+
+def item_stage_params(wildcards):
+    """Each stage's parameters for one item, when one job runs its whole chain (config jobs: item)."""
+    return {
+        "aoi": aoi_params(wildcards),
+        "reflectance": {},
+        "registration": registration_params(wildcards),
+        "features": feature_params(wildcards),
+    }
 
 
 def calibration_views(wildcards):
@@ -240,7 +254,11 @@ def comparison_inputs(wildcards):
     return inputs
 
 
-SCENE_RULES = ("ingest", "aoi", "reflectance", "registration", "features", "labels")
+# The stages of an item's chain from view files to features, and their rules (config jobs);
+# then a scene's labels.
+CHAIN_STAGES = ("ingest", "aoi", "reflectance", "registration", "features")
+ITEM_RULES = ("item",) if config["jobs"] == "item" else CHAIN_STAGES
+SCENE_RULES = (*ITEM_RULES, "labels")
 
 
 def runtime_settings(wildcards):
@@ -277,6 +295,11 @@ def truth_files(wildcards):
 
 def item_stores(stage):
     return expand(f"{PROCESSED}/{stage}/{{item}}.zarr", item=CAMP.items)
+
+
+def figure_items():
+    """The items whose feature figure is drawn (config item_figures)."""
+    return {"all": list(CAMP.items), "scenes": list(CAMP.scenes), "none": []}[config["item_figures"]]
 
 
 def final_outputs(wildcards):

@@ -14,7 +14,7 @@ rule aoi:
         mem_mb=1000,
     params:
         stage="aoi",
-        stage_params={"window": config["aoi"]["window"], "jump": config["aoi"]["jump"]},
+        stage_params=aoi_params,
         chunks=config["chunks"],
         scheduler=config["scheduler"],
         code=STAGE_VERSION["aoi"],
