@@ -314,16 +314,16 @@ def report_campaigns(runs: list[Run], calls: list[dict], noop: float) -> None:
         ["stage", "import surffin.pipeline", "first call", "second call", "first use"],
         [[c["stage"], c["import"], c["first"], c["second"], c["first"] - c["second"]] for c in calls],
     )
-    default = [run for run in runs if run.label == "default"]
-    rules = by_rule(default[0])
+    rules = list(dict.fromkeys(rule for run in runs for rule in by_rule(run)))
     rows = [
-        [rule, *(f(j.max_rss_mb for j in by_rule(run)[rule]) for run in default for f in (statistics.median, max))]
+        [rule, *(f(j.max_rss_mb for j in by_rule(run)[rule]) if rule in by_rule(run) else "-"
+                 for run in runs for f in (statistics.median, max))]
         for rule in rules
     ]
     table(
-        "Peak memory per job, MB (max_rss of the benchmark TSVs, sampled every 0.5 s), by campaign size",
-        ["rule", *(f"{run.specimens}: {stat}" for run in default for stat in ("median", "max"))],
-        [[row[0], *(round(v) for v in row[1:])] for row in rows],
+        "Peak memory per job, MB (max_rss of the benchmark TSVs, sampled every 0.5 s), by run",
+        ["rule", *(f"{run.specimens} {run.label}: {stat}" for run in runs for stat in ("median", "max"))],
+        [[row[0], *(v if v == "-" else round(v) for v in row[1:])] for row in rows],
     )
 
 
