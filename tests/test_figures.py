@@ -423,3 +423,14 @@ def test_snakemake_report_holds_every_figure(tmp_path):
     items, scenes = len(camp.items), len(camp.scenes)
     assert jobs["item_figures"] == items and jobs["scene_figures"] == scenes and jobs["classification_figures"] == 1
     assert "calibration" not in jobs and "calibration_figures" not in jobs
+
+
+def test_the_report_needs_nothing_beyond_surffins_own_requirements():
+    # `snakemake --report` needs pygments, which snakemake installs only with its `reports`
+    # extra; the test extras bring it through pytest, so the suite alone would not notice.
+    from importlib.metadata import requires
+
+    from packaging.requirements import Requirement
+
+    snakemake = [req for req in map(Requirement, requires("surffin")) if req.name == "snakemake" and not req.marker]
+    assert len(snakemake) == 1 and "reports" in snakemake[0].extras
