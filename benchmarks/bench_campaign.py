@@ -24,8 +24,9 @@ with ``snakemake --cores 2`` and the repository's default configuration.
   and ``run_ingest``, ``item <name> done in X s`` of ``run_item``: opening inputs, computing,
   writing the stores); the rest of ``s`` is *job start-up*: the new Python process, snakemake's
   script preamble, imports, and exit. Rules that do not log a total (calibration, training,
-  summary, figures) are charged the median start-up of the jobs that do, in the same run. What the jobs do not hold is *idle*: snakemake parsing
-  the workflow and validating the campaign, building the DAG, and its bookkeeping between jobs.
+  summary, figures) are charged the median start-up of the jobs that do, in the same run. What
+  the jobs do not hold is *idle*: snakemake parsing the workflow and validating the campaign,
+  building the DAG, and its bookkeeping between jobs.
   **overhead** = (start-up + idle) / budget = 1 - stage time / budget; **no-overhead
   spec/min** = spec/min / (stage share), the rate if only the stages' own work took time (with
   the same threads per job). A no-op start-up (a process importing snakemake's script support,

@@ -62,8 +62,8 @@ def main():
                     if round_:
                         times[size].append(time.perf_counter() - start)
         crop = camp.crop
-        print(f"run_item over {len(camp.items)} items ({crop.shape[0]} x {crop.shape[1]} crop), threads {args.threads}, "
-              f"{args.repeat} rounds")
+        print(f"run_item over {len(camp.items)} items ({crop.shape[0]} x {crop.shape[1]} crop), "
+              f"threads {args.threads}, {args.repeat} rounds")
         print(f"{'chunks':>8s}{'median s':>10s}{'ratio':>8s}")
         reference = statistics.median(times[args.chunks[0]])
         for size, values in times.items():

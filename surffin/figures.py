@@ -447,7 +447,8 @@ def plot_features(
     region = features if roi is None else select_roi(features, roi)
     # A fixed layout: the constrained one took 0.7 of this figure's ~2 s, and the figure is drawn for every item.
     fig = _figure(19.0, 9.5, layout=None)
-    axes = fig.subplots(2, 3, gridspec_kw={"left": 0.04, "right": 0.97, "top": 0.91, "bottom": 0.15, "wspace": 0.25, "hspace": 0.3})
+    spacing = {"left": 0.04, "right": 0.97, "top": 0.91, "bottom": 0.15, "wspace": 0.25, "hspace": 0.3}
+    axes = fig.subplots(2, 3, gridspec_kw=spacing)
     panels = (
         ("R0", "R0: reflectance at normal incidence", "viridis", _RANGE, False),
         ("n", "n: scattering coefficient", "cividis", _RANGE, False),

