@@ -134,9 +134,11 @@ def dask_scheduler(scheduler: str | None, threads: int = 1) -> Iterator[None]:
                 f"unknown dask scheduler {scheduler!r}: expected threads, processes, synchronous or the "
                 "address of a dask.distributed scheduler (e.g. tcp://10.0.0.1:8786)"
             )
-        # The scheduler's function, not its name: given a name, dask imports dask.distributed
-        # (0.4 s, every job) to look for a client first.
-        with dask.config.set(scheduler=named_schedulers[scheduler], num_workers=threads), _LogProgress():
+        # The scheduler's function, not its name, and rechunks by tasks: given a name, or left
+        # to choose a rechunk method, dask imports dask.distributed (0.4 s, in every job) to
+        # look for a client first. Its other method, p2p, needs that client.
+        local = {"scheduler": named_schedulers[scheduler], "num_workers": threads, "array.rechunk.method": "tasks"}
+        with dask.config.set(local), _LogProgress():
             yield
 
 
