@@ -7,6 +7,7 @@ rule calibration:
         f"{LOGS}/calibration.log",
     benchmark:
         f"{LOGS}/benchmarks/calibration.tsv"
+    priority: RESULTS_FIRST
     conda:
         ENV
     threads: 1

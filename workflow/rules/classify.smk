@@ -8,6 +8,7 @@ rule training:
         f"{LOGS}/training.log",
     benchmark:
         f"{LOGS}/benchmarks/training.tsv"
+    priority: RESULTS_FIRST
     conda:
         ENV
     threads: 1
@@ -32,6 +33,7 @@ rule labels:
         f"{LOGS}/labels/{{scene}}.log",
     benchmark:
         f"{LOGS}/benchmarks/labels/{{scene}}.tsv"
+    priority: RESULTS_FIRST
     conda:
         ENV
     threads: 1
@@ -64,6 +66,7 @@ rule summary:
         f"{LOGS}/summary.log",
     benchmark:
         f"{LOGS}/benchmarks/summary.tsv"
+    priority: RESULTS_FIRST
     conda:
         ENV
     threads: 1

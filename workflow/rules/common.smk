@@ -19,6 +19,14 @@ PROCESSED = config["processed"]
 LOGS = config["logs"]
 ENV = "../envs/surffin.yaml"
 
+# The jobs on the way to summary.json run first: the calibration, each item's chain, the
+# training set, labels and the summary. The other jobs (calibration diagnostics, sensitivity,
+# figures) take the cores left over, and so fill the second core while training, labels and
+# summary run one after another at the end. Without priorities snakemake's greedy scheduler
+# prefers the jobs with the largest inputs: the diagnostics held a core while items waited, and
+# the end of a run left a core idle (benchmarks/bench_campaign.py).
+RESULTS_FIRST = 10
+
 # Code version of each stage: bump it when a change to surffin alters what the
 # stage writes, so that snakemake's params trigger reruns exactly that stage
 # and what depends on it.

@@ -7,6 +7,7 @@ rule ingest:
         f"{LOGS}/ingest/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/ingest/{{item}}.tsv"
+    priority: RESULTS_FIRST
     conda:
         ENV
     threads: 1

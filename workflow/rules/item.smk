@@ -15,6 +15,7 @@ rule item:
         f"{LOGS}/item/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/item/{{item}}.tsv"
+    priority: RESULTS_FIRST
     conda:
         ENV
     threads: 1

@@ -7,6 +7,7 @@ rule aoi:
         f"{LOGS}/aoi/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/aoi/{{item}}.tsv"
+    priority: RESULTS_FIRST
     conda:
         ENV
     threads: 1
@@ -33,6 +34,7 @@ rule reflectance:
         f"{LOGS}/reflectance/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/reflectance/{{item}}.tsv"
+    priority: RESULTS_FIRST
     conda:
         ENV
     threads: 1
@@ -59,6 +61,7 @@ rule registration:
         f"{LOGS}/registered/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/registered/{{item}}.tsv"
+    priority: RESULTS_FIRST
     conda:
         ENV
     threads: 1
@@ -85,6 +88,7 @@ rule features:
         f"{LOGS}/features/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/features/{{item}}.tsv"
+    priority: RESULTS_FIRST
     conda:
         ENV
     threads: 1
