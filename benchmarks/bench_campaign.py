@@ -41,8 +41,10 @@ with ``snakemake --cores 2`` and the repository's default configuration.
   dask threads; the defaults run them at one thread, two jobs at once), ``ilp scheduler``
   (snakemake's ILP job scheduler instead of the greedy one of ``profiles/default``), ``chunks
   256`` (the former default chunks, 256 x 256, against 512 x 512), ``item jobs`` (config
-  ``jobs: item``: one job per item from view files to features) and ``item jobs, scene
-  figures`` (the same with ``item_figures: scenes``: no feature figure per specimen).
+  ``jobs: item``: one job per item from view files to features), ``item jobs, scene
+  figures`` (the same with ``item_figures: scenes``: no feature figure per specimen) and
+  ``item batches, scene figures`` (the same with ``item_batches: 8``: the specimens' chains in
+  8 batch jobs, reported as rule ``item_batch``).
 
 Targets: >= 30 specimens/min, overhead <= 50 %, peak memory per job <= 1 GB and not growing
 with N.
@@ -93,9 +95,11 @@ VARIANTS = {
     "chunks 256": ((), {"chunks": {"y": 256, "x": 256}}),
     "item jobs": ((), {"jobs": "item"}),
     "item jobs, scene figures": ((), {"jobs": "item", "item_figures": "scenes"}),
+    "item batches, scene figures": ((), {"jobs": "item", "item_figures": "scenes", "item_batches": 8}),
 }
-#: A job's logged work: the last "<stage> done in" line (an item job logs each stage, then its total).
-_DONE = re.compile(r"INFO (?:item \S+|\w+) done in ([0-9.]+) s$", re.M)
+#: A job's logged work: the last "<stage> done in" line (an item job logs each stage, then its total;
+#: a batch job each item, then the batch's total).
+_DONE = re.compile(r"INFO (?:item \S+|batch of \d+ items|\w+) done in ([0-9.]+) s$", re.M)
 
 
 # --- output --------------------------------------------------------------------------------
@@ -176,7 +180,7 @@ def parse_jobs(output: str) -> list[Job]:
     """The jobs of a snakemake run, from its printed job blocks and their benchmark and log files."""
     jobs = []
     for block in re.split(r"^\[.*\]\n(?=(?:local)?rule )", output, flags=re.M)[1:]:
-        rule = re.match(r"(?:local)?rule (\w+):", block).group(1)
+        rule = re.sub(r"^item_batch_\d+$", "item_batch", re.match(r"(?:local)?rule (\w+):", block).group(1))
         bench = re.search(r"^\s+benchmark: (.+)$", block, re.M)
         if bench is None:  # the target rule `all`
             continue
@@ -434,6 +438,8 @@ def main():
     parser.add_argument("--cubes", nargs="*", default=["480x640", "1600x1920"], help="cube sizes HxW (5 views)")
     parser.add_argument("--workdir", type=Path, help="scratch folder (default: a temporary one, removed after)")
     args = parser.parse_args()
+    if args.workdir is not None:
+        args.workdir.mkdir(parents=True, exist_ok=True)
     root = Path(tempfile.mkdtemp(prefix="surffin-bench-", dir=args.workdir))
     try:
         print(f"surffin campaign benchmark in {root}, {os.cpu_count()} cpus, {load()}", flush=True)

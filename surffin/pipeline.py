@@ -6,7 +6,7 @@ Each function here is what one workflow rule runs (through a short script in
 opens the input stores, runs the stage under the chosen dask scheduler with
 progress in the log, and writes the output store atomically with provenance.
 :func:`run_item` runs an item's whole chain (ingest to features) in one
-process, writing the same stores.
+process, writing the same stores; :func:`run_items` the chains of a batch of items.
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ __all__ = [
     "run_stage",
     "ITEM_CHAIN",
     "run_item",
+    "run_items",
     "run_calibration",
     "check_calibration",
     "run_training",
@@ -268,25 +269,81 @@ def run_item(
     dict of str to Path
         The written stores by name.
     """
+    return run_items(
+        campaign, {item: outputs}, calibration=calibration, params={item: params or {}}, chunks=chunks,
+        scheduler=scheduler, threads=threads, log_path=log_path,
+    )[item]
+
+
+def run_items(
+    campaign: str | os.PathLike,
+    items: Mapping[str, Mapping[str, str | os.PathLike]],
+    *,
+    calibration: str | os.PathLike,
+    params: Mapping[str, Mapping[str, Mapping]] | None = None,
+    chunks: Mapping[str, int] | None = None,
+    scheduler: str | None = None,
+    threads: int = 1,
+    log_path: str | os.PathLike | None = None,
+) -> dict[str, dict[str, Path]]:
+    """Run the chains of several items one after another in this one process (a batch job).
+
+    Each item's chain is :func:`run_item`'s; the process starts, and imports
+    its modules, once for all of them.
+
+    Parameters
+    ----------
+    items : mapping of str to mapping
+        Item name -> its stores by name, as ``outputs`` of :func:`run_item`.
+    params : mapping of str to mapping, optional
+        Item name -> each stage's parameters by stage name (an item not named gets none).
+    campaign, calibration, chunks, scheduler, threads, log_path
+        As for :func:`run_item`; one log for all the items.
+
+    Returns
+    -------
+    dict of str to dict of str to Path
+        Item name -> the written stores by name.
+
+    Raises
+    ------
+    ValueError
+        Before anything is written, if an item's stores are not named as
+        :func:`run_item` needs, parameters name a stage not in the chain, or
+        parameters are given for an item not in ``items``.
+    """
     params = dict(params or {})
-    unknown = set(params) - {stage for stage, _, _ in ITEM_CHAIN}
+    stages = {stage for stage, _, _ in ITEM_CHAIN}
     names = {"ingest", *(output for _, output, _ in ITEM_CHAIN)}
-    if unknown or set(outputs) != names:
-        raise ValueError(
-            f"run_item: outputs must be named {sorted(names)}, got {sorted(outputs)}; "
-            f"parameters given for stages not in the chain: {sorted(unknown) or 'none'}"
-        )
+    problems = []
+    if strangers := set(params) - set(items):
+        problems.append(f"parameters given for items not in the batch: {sorted(strangers)}")
+    for item, outputs in items.items():
+        if set(outputs) != names:
+            problems.append(f"{item}: outputs must be named {sorted(names)}, got {sorted(outputs)}")
+        if unknown := set(params.get(item, {})) - stages:
+            problems.append(f"{item}: parameters given for stages not in the chain: {sorted(unknown)}")
+    if problems:
+        raise ValueError("run_items: " + "; ".join(problems))
     with logging_to(log_path):
         start = time.perf_counter()
-        _ingest(campaign, item, outputs["ingest"], chunks)
-        # Inputs are recorded as given, as the per-stage rules record theirs.
-        stores = {**outputs, "calibration": calibration}
-        with dask_scheduler(scheduler, threads):
-            for stage, output, inputs in ITEM_CHAIN:
-                stores_in = {name: stores[name] for name in inputs}
-                _stage(stage, outputs[output], stores_in, dict(params.get(stage, {})), chunks)
-        log.info("item %s done in %.2f s", item, time.perf_counter() - start)
-        return {name: Path(path) for name, path in outputs.items()}
+        for item, outputs in items.items():
+            _item(campaign, item, outputs, calibration, params.get(item, {}), chunks, scheduler, threads)
+        if len(items) > 1:
+            log.info("batch of %d items done in %.2f s", len(items), time.perf_counter() - start)
+        return {item: {name: Path(path) for name, path in outputs.items()} for item, outputs in items.items()}
+
+
+def _item(campaign, item, outputs, calibration, params, chunks, scheduler, threads) -> None:
+    start = time.perf_counter()
+    _ingest(campaign, item, outputs["ingest"], chunks)
+    # Inputs are recorded as given, as the per-stage rules record theirs.
+    stores = {**outputs, "calibration": calibration}
+    with dask_scheduler(scheduler, threads):
+        for stage, output, inputs in ITEM_CHAIN:
+            stores_in = {name: stores[name] for name in inputs}
+            _stage(stage, outputs[output], stores_in, dict(params.get(stage, {})), chunks)
+    log.info("item %s done in %.2f s", item, time.perf_counter() - start)
 
 
 def run_calibration(

@@ -8,7 +8,7 @@ import pytest
 import xarray as xr
 
 import surffin
-from surffin.pipeline import dask_scheduler, run_calibration, run_ingest, run_item, run_stage
+from surffin.pipeline import dask_scheduler, run_calibration, run_ingest, run_item, run_items, run_stage
 
 #: The tiny camera needs 8x the paper camera's depth-jump threshold (tests/data/tiny-config.yaml).
 JUMP = 0.16
@@ -60,6 +60,31 @@ def test_run_item_writes_the_stores_of_the_stages(campaign, tmp_path):
     text = log.read_text()
     for stage in ("ingest", "aoi", "reflectance", "registration", "features", "item T1"):
         assert f"{stage} done in" in text
+
+
+def test_run_items_runs_each_chain_with_its_own_parameters(campaign, tmp_path):
+    camp, calibration = campaign
+    expected = stage_by_stage(camp, calibration, "S1", tmp_path / "stages")
+    items = {name: {store: tmp_path / "batch" / store / f"{name}.zarr" for store in STORES} for name in ("S1", "T1")}
+    params = {"S1": {"aoi": {"jump": JUMP}, "features": FEATURES}, "T1": {"features": {**FEATURES, "size": 3}}}
+    log = tmp_path / "batch.log"
+    assert run_items(camp.path, items, calibration=calibration, params=params, chunks=CHUNKS, log_path=log) == items
+    for name in STORES:
+        ours, theirs = xr.open_zarr(items["S1"][name]).load(), xr.open_zarr(expected[name]).load()
+        del ours.attrs["surffin_inputs"], theirs.attrs["surffin_inputs"]
+        xr.testing.assert_identical(ours, theirs)
+    t1 = {store: xr.open_zarr(items["T1"][store]).attrs["surffin_parameters"] for store in ("aoi", "features")}
+    assert t1["aoi"] == {} and t1["features"]["size"] == 3
+    text = log.read_text()
+    assert all(f"{line} done in" in text for line in ("item S1", "item T1", "batch of 2 items"))
+
+
+def test_run_items_refuses_parameters_of_items_it_does_not_run(campaign, tmp_path):
+    camp, calibration = campaign
+    items = {"T1": {store: tmp_path / store / "T1.zarr" for store in STORES}}
+    with pytest.raises(ValueError, match=r"items not in the batch: \['S9'\]"):
+        run_items(camp.path, items, calibration=calibration, params={"S9": {}})
+    assert not any(path.exists() for path in items["T1"].values())
 
 
 def test_run_item_names_wrong_outputs_and_stages(campaign, tmp_path):

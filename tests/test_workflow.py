@@ -190,11 +190,15 @@ def test_unknown_config_key_fails_before_any_job(tmp_path):
     assert not (tmp_path / "processed").exists()
 
 
-def test_bad_jobs_value_fails_before_any_job_naming_the_key(tmp_path):
+@pytest.mark.parametrize(
+    ("setting", "message"),
+    [("jobs=items", "'items' is not one of ['stage', 'item']"), ("item_batches=-1", "-1 is less than the minimum of 0")],
+)
+def test_bad_jobs_values_fail_before_any_job_naming_the_key(tmp_path, setting, message):
     surffin.simulate_campaign(tmp_path / "raw", preset="tiny", seed=0)
-    run = snakemake(tmp_path, config=["jobs=items"])
+    run = snakemake(tmp_path, config=[setting])
     assert run.returncode != 0
-    assert "'items' is not one of ['stage', 'item']" in run.stderr + run.stdout and "jobs" in run.stderr + run.stdout
+    assert message in run.stderr + run.stdout and setting.split("=")[0] in run.stderr + run.stdout
     assert not (tmp_path / "processed").exists()
 
 
@@ -215,8 +219,9 @@ def test_workflow_files_are_formatted():
     assert run.returncode == 0, run.stdout + run.stderr
 
 
-def test_lint_is_clean(done):
-    run = snakemake(done, "--lint")
+@pytest.mark.parametrize("config", [(), ("jobs=item", "item_batches=2")], ids=["stage jobs", "batch jobs"])
+def test_lint_is_clean(done, config):
+    run = snakemake(done, "--lint", config=config)
     assert run.returncode == 0, run.stdout + run.stderr
 
 
@@ -233,21 +238,21 @@ def normalised(ds, *processed):
     return ds.assign_attrs(surffin_inputs=inputs)
 
 
-@pytest.fixture(scope="module")
-def item_jobs(done, tmp_path_factory):
-    """The features stores of ``done``'s campaign made by item jobs, with ``done``'s calibration."""
-    workdir = tmp_path_factory.mktemp("items")
-    shutil.copytree(done / "raw", workdir / "raw")
+def chain_jobs(done, folder, config):
+    """Run ``done``'s campaign to its features stores in ``folder`` with item jobs (``config``) and
+    ``done``'s calibration; returns the folder, the targets and the config."""
+    shutil.copytree(done / "raw", folder / "raw")
     items = surffin.read_campaign(done / "raw").items
-    targets = [str(workdir / "processed" / "features" / f"{name}.zarr") for name in items]
-    config = ["jobs=item", f"calibration_store={done / 'processed' / 'calibration.zarr'}"]
-    run = snakemake(workdir, *targets, config=config)
+    targets = [str(folder / "processed" / "features" / f"{name}.zarr") for name in items]
+    config = [*config, f"calibration_store={done / 'processed' / 'calibration.zarr'}"]
+    run = snakemake(folder, *targets, config=config)
     assert run.returncode == 0, run.stderr[-4000:]
-    return workdir, targets, config
+    return folder, targets, config
 
 
-def test_item_jobs_write_the_stores_of_the_stage_jobs(done, item_jobs):
-    workdir, _, _ = item_jobs
+def assert_stores_of_the_stage_jobs(workdir, done, logs):
+    """``workdir``'s chain stores are ``done``'s, and the ``logs`` name each stage of each item."""
+    text = "".join(log.read_text() for log in logs)
     for name in surffin.read_campaign(done / "raw").items:
         for stage in ("ingest", "aoi", "reflectance", "registered", "features"):
             # the item jobs read the calibration of `done`, by its path there
@@ -256,21 +261,63 @@ def test_item_jobs_write_the_stores_of_the_stage_jobs(done, item_jobs):
                 for folder in (workdir / "processed", done / "processed")
             )
             xr.testing.assert_identical(ours.load(), theirs.load())
-        log = (workdir / "logs" / "item" / f"{name}.log").read_text()
-        assert all(f"{stage} done in" in log for stage in ("ingest", "aoi", "reflectance", "registration", "features"))
+        assert f"item {name} done in" in text
+    assert all(f"{stage} done in" in text for stage in ("ingest", "aoi", "reflectance", "registration", "features"))
+
+
+@pytest.fixture(scope="module")
+def item_jobs(done, tmp_path_factory):
+    return chain_jobs(done, tmp_path_factory.mktemp("items"), ["jobs=item"])
+
+
+@pytest.fixture(scope="module")
+def batch_jobs(done, tmp_path_factory):
+    # two batches of the specimens by the CRC-32 of their names: S1, S2, S3 | S4; the scene T1 alone
+    return chain_jobs(done, tmp_path_factory.mktemp("batches"), ["jobs=item", "item_batches=2"])
+
+
+def test_item_jobs_write_the_stores_of_the_stage_jobs(done, item_jobs):
+    workdir, _, _ = item_jobs
+    assert_stores_of_the_stage_jobs(workdir, done, sorted((workdir / "logs" / "item").glob("*.log")))
+    assert len(list((workdir / "logs" / "item").glob("*.log"))) == 5
+
+
+def test_batch_jobs_write_the_stores_of_the_stage_jobs(done, batch_jobs):
+    workdir, _, _ = batch_jobs
+    batches = sorted((workdir / "logs" / "item_batch").glob("*.log"))
+    assert [log.name for log in batches] == ["0.log", "1.log"]
+    assert "batch of 3 items done in" in batches[0].read_text()
+    assert [log.name for log in (workdir / "logs" / "item").glob("*.log")] == ["T1.log"]
+    assert_stores_of_the_stage_jobs(workdir, done, [*batches, workdir / "logs" / "item" / "T1.log"])
 
 
 def test_item_jobs_rerun_whole_chains(item_jobs):
     workdir, targets, config = item_jobs
     assert planned_jobs(workdir, *targets, config=config) == {}
     assert planned_jobs(workdir, *targets, config=config, overrides={"features": {"smoothing": 5}}) == {"item": 5}
-    # a view replaced: that item's chain only (the view is put back as it was after the dry run)
-    view = surffin.read_campaign(workdir / "raw").specimens["S2"].views[1]
+    # a view replaced: that item's chain only
+    assert planned_jobs_with_view_replaced(workdir, "S2", targets, config) == {"item": 1}
+
+
+def test_batch_jobs_rerun_the_batch_of_a_changed_specimen(batch_jobs):
+    workdir, targets, config = batch_jobs
+    assert planned_jobs(workdir, *targets, config=config) == {}
+    assert planned_jobs_with_view_replaced(workdir, "S2", targets, config) == {"item_batch_0": 1}
+    assert planned_jobs_with_view_replaced(workdir, "S4", targets, config) == {"item_batch_1": 1}
+    assert planned_jobs_with_view_replaced(workdir, "T1", targets, config) == {"item": 1}
+    # three batches, S1, S4 | none | S2, S3: both hold other specimens than before, so both run
+    regrouped = planned_jobs(workdir, *targets, config=[*config, "item_batches=3"])
+    assert regrouped == {"item_batch_0": 1, "item_batch_2": 1}
+
+
+def planned_jobs_with_view_replaced(workdir, item, targets, config):
+    """The dry run's jobs with a view of ``item`` replaced (and put back as it was after)."""
+    view = surffin.read_campaign(workdir / "raw").items[item].views[1]
     original, stat = view.read_bytes(), view.stat()
     data = dict(np.load(view))
     np.savez(view, **{**data, "intensity": data["intensity"] * 1.01})
     try:
-        assert planned_jobs(workdir, *targets, config=config) == {"item": 1}
+        return planned_jobs(workdir, *targets, config=config)
     finally:
         view.write_bytes(original)
         os.utime(view, ns=(stat.st_atime_ns, stat.st_mtime_ns))

@@ -1,6 +1,8 @@
 import math
 import re
+import zlib
 from pathlib import Path
+from types import SimpleNamespace
 
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
@@ -267,6 +269,63 @@ def comparison_inputs(wildcards):
 CHAIN_STAGES = ("ingest", "aoi", "reflectance", "registration", "features")
 ITEM_RULES = ("item",) if config["jobs"] == "item" else CHAIN_STAGES
 SCENE_RULES = (*ITEM_RULES, "labels")
+
+
+# --- config jobs: item (item.smk) ---
+
+
+def chain_stores(item):
+    """An item's chain stores by name, as pipeline.run_item writes them (item may be "{item}")."""
+    return {
+        "ingest": f"{PROCESSED}/ingest/{item}.zarr",
+        "aoi": f"{PROCESSED}/aoi/{item}.zarr",
+        "reflectance": f"{PROCESSED}/reflectance/{item}.zarr",
+        "registered": f"{PROCESSED}/registered/{item}.zarr",
+        "features": f"{PROCESSED}/features/{item}.zarr",
+    }
+
+
+def chains(names):
+    """What an item or batch job runs, per item: its stores and stage parameters, and (rerun
+    triggers only) what campaign.yaml says about it. Each item's are those of its own item job,
+    whose wildcards a namespace stands in for."""
+    return {
+        name: {
+            "stores": chain_stores(name),
+            "params": item_stage_params(SimpleNamespace(item=name)),
+            "settings": item_settings(SimpleNamespace(item=name)),
+        }
+        for name in names
+    }
+
+
+def item_batches():
+    """Batch number -> its specimens (config item_batches; none when 0 or jobs: stage).
+
+    A specimen's batch is the CRC-32 of its name modulo the number of batches: it
+    stays in its batch as other specimens come and go, so adding one reruns its
+    batch only.
+    """
+    count = config["item_batches"] if config["jobs"] == "item" else 0
+    batches = {}
+    for name in CAMP.specimens if count else ():
+        batches.setdefault(zlib.crc32(name.encode()) % count, []).append(name)
+    return dict(sorted(batches.items()))
+
+
+def batch_views(names):
+    """The input function of a batch job's view files (each of its items')."""
+    return lambda wildcards: [view for name in names for view in item_views(SimpleNamespace(item=name))]
+
+
+BATCHED = {name for names in item_batches().values() for name in names}
+# The params of item and batch jobs besides their chains.
+CHAIN_JOB_PARAMS = {
+    "campaign": str(CAMPAIGN),
+    "chunks": config["chunks"],
+    "scheduler": config["scheduler"],
+    "code": {stage: STAGE_VERSION[stage] for stage in CHAIN_STAGES},
+}
 
 
 def runtime_settings(wildcards):

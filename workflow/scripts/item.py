@@ -1,11 +1,11 @@
-from surffin.pipeline import run_item
+from surffin.pipeline import run_items
 
-run_item(
+chains = snakemake.params.chains
+run_items(
     snakemake.params.campaign,
-    snakemake.wildcards.item,
-    dict(snakemake.output.items()),
+    {name: chain["stores"] for name, chain in chains.items()},
     calibration=snakemake.input.calibration,
-    params=snakemake.params.stage_params,
+    params={name: chain["params"] for name, chain in chains.items()},
     chunks=snakemake.params.chunks,
     scheduler=snakemake.params.scheduler,
     threads=snakemake.threads,
