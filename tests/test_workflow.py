@@ -305,6 +305,19 @@ def test_batch_jobs_rerun_the_batch_of_a_changed_specimen(batch_jobs):
     assert planned_jobs_with_view_replaced(workdir, "S2", targets, config) == {"item_batch_0": 1}
     assert planned_jobs_with_view_replaced(workdir, "S4", targets, config) == {"item_batch_1": 1}
     assert planned_jobs_with_view_replaced(workdir, "T1", targets, config) == {"item": 1}
+    # a specimen added, S5: its batch runs (its other specimen with it), no other job
+    raw = workdir / "raw"
+    spec = (raw / "campaign.yaml").read_text()
+    shutil.copytree(raw / "specimens" / "S1", raw / "specimens" / "S5")
+    added = yaml.safe_load(spec)
+    added["specimens"]["S5"] = {**added["specimens"]["S1"], "views": "specimens/S5"}
+    (raw / "campaign.yaml").write_text(yaml.safe_dump(added))
+    try:
+        features = str(workdir / "processed" / "features" / "S5.zarr")
+        assert planned_jobs(workdir, *targets, features, config=config) == {"item_batch_1": 1}
+    finally:
+        (raw / "campaign.yaml").write_text(spec)
+        shutil.rmtree(raw / "specimens" / "S5")
     # three batches, S1, S4 | none | S2, S3: both hold other specimens than before, so both run
     regrouped = planned_jobs(workdir, *targets, config=[*config, "item_batches=3"])
     assert regrouped == {"item_batch_0": 1, "item_batch_2": 1}
