@@ -1,8 +1,6 @@
 """Figures and tables of the report: each from small synthetic stores, the calibration's kept samples, the report."""
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
