@@ -1,5 +1,6 @@
 """Snakemake on a tiny synthetic campaign, in temporary working directories."""
 
+import contextlib
 import json
 import os
 import re
@@ -160,22 +161,44 @@ def test_code_version_bump_reruns_that_stage(done, tmp_path):
     assert jobs == {"labels": 1, "summary": 1, "classification_figures": 1, "scene_figures": 1, "paper_comparison": 1, "all": 1}
 
 
-def test_replacing_one_view_reruns_its_chain_only(fresh):
-    view = surffin.read_campaign(fresh / "raw").specimens["S2"].views[1]
+@contextlib.contextmanager
+def view_replaced(raw, item):
+    """A view of ``item`` in campaign ``raw`` replaced by one 1 % brighter, put back as it was after."""
+    view = surffin.read_campaign(raw).items[item].views[1]
+    original, stat = view.read_bytes(), view.stat()
     data = dict(np.load(view))
-    data["intensity"] = data["intensity"] * 1.01
-    np.savez(view, **data)
-    jobs = planned_jobs(fresh)
+    np.savez(view, **{**data, "intensity": data["intensity"] * 1.01})
+    try:
+        yield
+    finally:
+        view.write_bytes(original)
+        os.utime(view, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+
+
+@contextlib.contextmanager
+def specimen_added(raw):
+    """Specimen S5 (S1's views and settings) added to campaign ``raw``, and removed after."""
+    spec = (raw / "campaign.yaml").read_text()
+    shutil.copytree(raw / "specimens" / "S1", raw / "specimens" / "S5")
+    added = yaml.safe_load(spec)
+    added["specimens"]["S5"] = {**added["specimens"]["S1"], "views": "specimens/S5"}
+    (raw / "campaign.yaml").write_text(yaml.safe_dump(added))
+    try:
+        yield
+    finally:
+        (raw / "campaign.yaml").write_text(spec)
+        shutil.rmtree(raw / "specimens" / "S5")
+
+
+def test_replacing_one_view_reruns_its_chain_only(fresh):
+    with view_replaced(fresh / "raw", "S2"):
+        jobs = planned_jobs(fresh)
     assert jobs == {**{stage: 1 for stage in ITEM_CHAIN}, **DOWNSTREAM}
 
 
 def test_adding_a_specimen_runs_its_chain(fresh):
-    raw = fresh / "raw"
-    shutil.copytree(raw / "specimens" / "S1", raw / "specimens" / "S5")
-    spec = yaml.safe_load((raw / "campaign.yaml").read_text())
-    spec["specimens"]["S5"] = {**spec["specimens"]["S1"], "views": "specimens/S5"}
-    (raw / "campaign.yaml").write_text(yaml.safe_dump(spec))
-    jobs = planned_jobs(fresh)
+    with specimen_added(fresh / "raw"):
+        jobs = planned_jobs(fresh)
     # the calibration diagnostics reprocess one specimen per class, and S1 stays class S1's
     expected = {**{stage: 1 for stage in ITEM_CHAIN}, **DOWNSTREAM}
     del expected["calibration_diagnostics"]
@@ -296,44 +319,23 @@ def test_item_jobs_rerun_whole_chains(item_jobs):
     assert planned_jobs(workdir, *targets, config=config) == {}
     assert planned_jobs(workdir, *targets, config=config, overrides={"features": {"smoothing": 5}}) == {"item": 5}
     # a view replaced: that item's chain only
-    assert planned_jobs_with_view_replaced(workdir, "S2", targets, config) == {"item": 1}
+    with view_replaced(workdir / "raw", "S2"):
+        assert planned_jobs(workdir, *targets, config=config) == {"item": 1}
 
 
 def test_batch_jobs_rerun_the_batch_of_a_changed_specimen(batch_jobs):
     workdir, targets, config = batch_jobs
     assert planned_jobs(workdir, *targets, config=config) == {}
-    assert planned_jobs_with_view_replaced(workdir, "S2", targets, config) == {"item_batch_0": 1}
-    assert planned_jobs_with_view_replaced(workdir, "S4", targets, config) == {"item_batch_1": 1}
-    assert planned_jobs_with_view_replaced(workdir, "T1", targets, config) == {"item": 1}
+    for item, batch in (("S2", {"item_batch_0": 1}), ("S4", {"item_batch_1": 1}), ("T1", {"item": 1})):
+        with view_replaced(workdir / "raw", item):
+            assert planned_jobs(workdir, *targets, config=config) == batch
     # a specimen added, S5: its batch runs (its other specimen with it), no other job
-    raw = workdir / "raw"
-    spec = (raw / "campaign.yaml").read_text()
-    shutil.copytree(raw / "specimens" / "S1", raw / "specimens" / "S5")
-    added = yaml.safe_load(spec)
-    added["specimens"]["S5"] = {**added["specimens"]["S1"], "views": "specimens/S5"}
-    (raw / "campaign.yaml").write_text(yaml.safe_dump(added))
-    try:
+    with specimen_added(workdir / "raw"):
         features = str(workdir / "processed" / "features" / "S5.zarr")
         assert planned_jobs(workdir, *targets, features, config=config) == {"item_batch_1": 1}
-    finally:
-        (raw / "campaign.yaml").write_text(spec)
-        shutil.rmtree(raw / "specimens" / "S5")
     # three batches, S1, S4 | none | S2, S3: both hold other specimens than before, so both run
     regrouped = planned_jobs(workdir, *targets, config=[*config, "item_batches=3"])
     assert regrouped == {"item_batch_0": 1, "item_batch_2": 1}
-
-
-def planned_jobs_with_view_replaced(workdir, item, targets, config):
-    """The dry run's jobs with a view of ``item`` replaced (and put back as it was after)."""
-    view = surffin.read_campaign(workdir / "raw").items[item].views[1]
-    original, stat = view.read_bytes(), view.stat()
-    data = dict(np.load(view))
-    np.savez(view, **{**data, "intensity": data["intensity"] * 1.01})
-    try:
-        return planned_jobs(workdir, *targets, config=config)
-    finally:
-        view.write_bytes(original)
-        os.utime(view, ns=(stat.st_atime_ns, stat.st_mtime_ns))
 
 
 def test_switching_to_item_jobs_reruns_every_chain_once(done):
