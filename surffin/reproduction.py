@@ -3,10 +3,12 @@
 :func:`comparison` reads what the workflow wrote (``summary.json``, the calibration
 diagnostics, the sensitivity analysis, the roughness relation, the jobs' benchmark
 files) and returns one row per claim: the paper's value, surffin's, and where
-surffin's comes from. :func:`run_paper_comparison` writes them as a Markdown
-table (``paper-comparison.md``), the generated half of ``docs/paper-reproduction.md``.
-Nothing here computes science: it only reads and lines up numbers, so that a
-rerun of the workflow regenerates the table.
+surffin's comes from, and its origin (:data:`ORIGINS`): whether surffin's value
+echoes an input the simulator's ``paper`` preset took from the paper, which is no
+evidence for the paper's claim, or is measured. :func:`run_paper_comparison`
+writes them as a Markdown table (``paper-comparison.md``), the generated half of
+``docs/paper-reproduction.md``. Nothing here computes science: it only reads and
+lines up numbers, so that a rerun of the workflow regenerates the table.
 """
 
 from __future__ import annotations
@@ -15,9 +17,10 @@ import csv
 import json
 import os
 from collections.abc import Mapping, Sequence
+from itertools import pairwise
 from pathlib import Path
 
-__all__ = ["PAPER", "comparison", "to_markdown", "run_paper_comparison"]
+__all__ = ["ORIGINS", "PAPER", "comparison", "run_paper_comparison", "to_markdown"]
 
 #: The paper's numbers (Frangez et al. 2021), by the quantity they describe.
 PAPER = {
@@ -28,17 +31,55 @@ PAPER = {
     "runtime_s": 300.0,
     "runtime_views": 5,
 }
+_BUILT, _MEASURED = "by construction", "measured"
+#: What the ``origin`` column of a row says (the table's legend), for the synthetic
+#: ``paper`` campaign, the workflow's default; on a real camera's campaign every row is measured.
+ORIGINS = {
+    _BUILT: (
+        "surffin's value recovers what the simulator's `paper` preset put in, and the preset took that input "
+        "from the paper (the note names it): agreement shows that the pipeline recovers its input, not that the "
+        "paper's claim holds"
+    ),
+    _MEASURED: (
+        "the simulator was given neither the value nor inputs that fix it: it comes out of the pipeline (in the "
+        "sensitivity section, out of surffin's fit in a Monte Carlo) under the paper's acquisition design and "
+        "noise levels, which the preset copies"
+    ),
+}
+#: The inputs of the ``paper`` preset (``surffin/simulate/presets.py``) that the rows of origin
+#: "by construction" echo: taken from the paper, except coef_mean (the paper gives no means).
+_PRESET = {
+    "n": "n = 1.30 - 2.4 roughness_mm",
+    "R0": "R0 = 0.80, 0.86, 0.92, 0.81 for S1..S4",
+    "roughness": "roughness_mm of Table 4",
+    "variability": "coef_variability = Table 2's (8.94, 3.92, 1.79, 1.38, 4.44 %)",
+    "correlation": (
+        "coef_variability = Table 2's, coef_mean C < 0 < D; in the fit's gauge E = 1 (A E, B E, C/E, D/E) the "
+        "true coefficients share E's variation, which makes them correlate with Table 2's signs and C-D near -1"
+    ),
+}
 _TERMS = ("A", "B", "C", "D", "E")
 _SENSITIVITY = "snakemake --cores 2 sensitivity (or: surffin sensitivity --out DIR)"
 _DIAGNOSTICS = "snakemake --cores 2 calibration_diagnostics"
 _MAIN = "snakemake --cores 2"
 
 
-def _row(section: str, quantity: str, paper, surffin, source: str, command: str, note: str = "") -> dict:
+def _row(
+    section: str, quantity: str, paper, surffin, source: str, command: str, origin: str, note: str = ""
+) -> dict:
     return {
         "section": section, "quantity": quantity, "paper": paper, "surffin": surffin,
-        "source": source, "command": command, "note": note,
+        "source": source, "command": command, "origin": origin, "note": note,
     }
+
+
+def _note(*parts: str) -> str:
+    return "; ".join(part for part in parts if part)
+
+
+def _preset(*inputs: str) -> str:
+    """The note naming the ``paper`` preset's inputs (keys of ``_PRESET``) a row echoes."""
+    return "preset: " + ", ".join(_PRESET[name] for name in inputs)
 
 
 def _fmt(value, digits: int = 3) -> str:
@@ -54,45 +95,48 @@ def _calibration_rows(diag: Mapping) -> list[dict]:
     first = diag["calibrations"]["first"]
     src = "diagnostics/calibration.json"
     rows = [
-        _row("calibration", "mean R² over the crop's pixels", paper["mean_r2"], first["fit"]["mean_r2"], src, _DIAGNOSTICS),
+        _row("calibration", "mean R² over the crop's pixels", paper["mean_r2"], first["fit"]["mean_r2"], src, _DIAGNOSTICS,
+             _MEASURED, "the simulator renders eq. 5 exactly, without the real camera's residual systematics"),
         _row(
             "calibration", "variability across the image, % (A, B, C, D, E)",
             ", ".join(_fmt(paper["variability_percent"][t]) for t in _TERMS),
-            ", ".join(_fmt(first["variability_percent"]["plain"][t]) for t in _TERMS), src, _DIAGNOSTICS,
-            "plain 100 std/|mean|; E = 1 is the fit's gauge, so E does not vary here",
+            ", ".join(_fmt(first["variability_percent"]["plain"][t]) for t in _TERMS), src, _DIAGNOSTICS, _BUILT,
+            _note(_preset("variability"), "plain 100 std/|mean|; E = 1 is the fit's gauge, so E does not vary here"),
         ),
     ]
     ours = first["correlation"]
     index = {t: i for i, t in enumerate(ours["terms"])}
     for a, b in (("C", "D"), ("A", "B"), ("A", "C"), ("A", "D"), ("B", "C"), ("B", "D")):
         theirs = paper["correlation"]["matrix"][_TERMS.index(a)][_TERMS.index(b)]
-        rows.append(_row("calibration", f"correlation {a}-{b} (Table 2)", theirs, ours["matrix"][index[a]][index[b]], src, _DIAGNOSTICS))
+        rows.append(_row("calibration", f"correlation {a}-{b} (Table 2)", theirs, ours["matrix"][index[a]][index[b]], src,
+                         _DIAGNOSTICS, _BUILT, _preset("correlation")))
     own = [w for w in diag["wall_features"] if w["calibration"] == "first" and w["views_in_fit"] == w["views"]]
     for name in ("R0", "n"):
         value = own[0][name]["std"] if own else None
         rows.append(
             _row("calibration", f"std of {name} on the calibration wall", paper["wall_feature_std"][name], value, src,
-                 _DIAGNOSTICS, "per-pixel fit over the wall views the calibration was fitted to")
+                 _DIAGNOSTICS, _MEASURED, "per-pixel fit over the wall views the calibration was fitted to")
         )
     rep = diag["repeatability"]
     expected = paper["repeatability_percent"]
     if not rep["available"]:
-        rows.append(_row("calibration", "repeatability of two calibration sets", "see below", None, src, _DIAGNOSTICS, rep["reason"]))
+        rows.append(_row("calibration", "repeatability of two calibration sets", "see below", None, src, _DIAGNOSTICS,
+                         _MEASURED, rep["reason"]))
         return rows
     rows += [
         _row("calibration", "repeatability: coefficients, median |difference| % (A, B, C, D)",
              f"< {_fmt(expected['coefficients'])}", ", ".join(_fmt(rep["coefficients"][t]["median_abs_percent"]) for t in _TERMS[:4]),
-             src, _DIAGNOSTICS),
+             src, _DIAGNOSTICS, _MEASURED),
         _row("calibration", "repeatability: instrument function k f, median |difference| %", "n/a",
-             rep["calibration"]["median_abs_percent"], src, _DIAGNOSTICS),
+             rep["calibration"]["median_abs_percent"], src, _DIAGNOSTICS, _MEASURED),
     ]
     wall = next(w for w in rep["wall"] if w["wall"] == diag["calibrations"]["first"]["calibration_set"]["wall"])
     rows.append(_row("calibration", "repeatability: wall reflectance, median |difference| %", expected["reflectance"],
-                     wall["reflectance"]["median_abs_percent"], src, _DIAGNOSTICS))
+                     wall["reflectance"]["median_abs_percent"], src, _DIAGNOSTICS, _MEASURED))
     for name in ("R0", "n"):
         rows.append(_row("calibration", f"repeatability: {name} on the wall / on the specimens, median |difference| %",
                          expected[name], f"{_fmt(wall[name]['median_abs_percent'])} / {_fmt(rep['specimens'][name]['median_abs_percent'])}",
-                         src, _DIAGNOSTICS))
+                         src, _DIAGNOSTICS, _MEASURED))
     return rows
 
 
@@ -111,14 +155,14 @@ def _sensitivity_rows(slopes: Sequence[Mapping], separation: Sequence[Mapping]) 
     for row in slopes:
         rows.append(
             _row("sensitivity", f"slope of std against K views, {row['parameter']}, {row['noise']} noise {row['sigma']}",
-                 PAPER["slope"][row["parameter"]], _number(row["slope"]), "sensitivity/slopes.csv", _SENSITIVITY,
+                 PAPER["slope"][row["parameter"]], _number(row["slope"]), "sensitivity/slopes.csv", _SENSITIVITY, _MEASURED,
                  f"linearised {_fmt(_number(row['predicted_slope']), 2)}; K >= 3 only: {_fmt(_number(row['slope_from_3']), 2)}")
         )
     for row in separation:
         paper = PAPER["separation_deg"] if (row["noise"], row["level"]) == ("reflectance", "max") else "n/a"
         rows.append(
             _row("sensitivity", f"separation for std < 10 %, {row['parameter']}, {row['noise']} noise {row['sigma']}, deg",
-                 paper, float(row["required_separation_deg"]), "sensitivity/sensitivity.zarr", _SENSITIVITY,
+                 paper, float(row["required_separation_deg"]), "sensitivity/sensitivity.zarr", _SENSITIVITY, _MEASURED,
                  "paper: 'about 20 deg or more' at the high reflectance noise" if paper != "n/a" else "")
         )
     return rows
@@ -133,16 +177,18 @@ def _feature_rows(summary: Mapping, specimens: Sequence[str]) -> list[dict]:
         rows.append(
             _row("features", f"{name}: mean R0, n (relative std R0, n %)", "see Fig. 14",
                  f"{_fmt(stats['R0']['mean'])}, {_fmt(stats['n']['mean'])} ({_fmt(spans['R0'], 2)}, {_fmt(spans['n'], 2)})",
-                 "summary.json", _MAIN,
-                 f"paper: span within a specimen ~{PAPER['feature_span_percent']['R0']:g} % R0, ~{PAPER['feature_span_percent']['n']:g} % n")
+                 "summary.json", _MAIN, _BUILT,
+                 _note(_preset("R0", "n"), f"paper: span within a specimen ~{PAPER['feature_span_percent']['R0']:g} % R0, "
+                       f"~{PAPER['feature_span_percent']['n']:g} % n"))
         )
     n = [items[s]["n"]["mean"] for s in specimens]
     r0 = [items[s]["R0"]["mean"] for s in specimens]
     rows.append(_row("features", "n falls from the smoothest to the roughest specimen", "yes",
-                     "yes" if all(a > b for a, b in zip(n, n[1:])) else "no", "summary.json", _MAIN))
+                     "yes" if all(a > b for a, b in pairwise(n)) else "no", "summary.json", _MAIN, _BUILT,
+                     _preset("n", "roughness")))
     peak = r0.index(max(r0))
     rows.append(_row("features", "specimen of largest mean R0 (paper: rises to S3, drops for S4)", specimens[2] if len(specimens) > 2 else "n/a",
-                     specimens[peak], "summary.json", _MAIN))
+                     specimens[peak], "summary.json", _MAIN, _BUILT, _preset("R0")))
     return rows
 
 
@@ -153,8 +199,9 @@ def _classification_rows(summary: Mapping) -> list[dict]:
             accuracy = result.get("accuracy", {}).get(var)
             rows.append(
                 _row("classification", f"{scene}: accuracy of {var} (unclassified counts as wrong)", PAPER["accuracy"][var],
-                     None if accuracy is None else accuracy["accuracy"], "summary.json", _MAIN,
-                     "" if accuracy is not None else "no truth for this scene")
+                     None if accuracy is None else accuracy["accuracy"], "summary.json", _MAIN, _MEASURED,
+                     "the classes lie as far apart as the preset's R0 and n put them" if accuracy is not None
+                     else "no truth for this scene")
             )
     return rows
 
@@ -162,12 +209,14 @@ def _classification_rows(summary: Mapping) -> list[dict]:
 def _roughness_rows(relation: Mapping | None) -> list[dict]:
     if relation is None:
         return [_row("roughness", "relation of mean n and roughness", "nearly linear", None, "roughness/relation.json", _MAIN,
-                     "fewer than two specimens carry roughness_mm")]
+                     _BUILT, _note("fewer than two specimens carry roughness_mm", _preset("n")))]
     return [
         _row("roughness", "linear relation of mean n and roughness: R²", "nearly linear", relation["r2"], "roughness/relation.json", _MAIN,
-             f"n = {_fmt(relation['intercept'], 4)} {relation['slope']:+.4g} roughness_mm"),
+             _BUILT, _note(f"n = {_fmt(relation['intercept'], 4)} {relation['slope']:+.4g} roughness_mm", _preset("n", "roughness"))),
         _row("roughness", "leave-one-out error of the roughness from n, mm", "n/a", relation["roughness_rmse_mm"],
-             "roughness/relation.json", _MAIN),
+             "roughness/relation.json", _MAIN, _MEASURED,
+             "the preset's n is exactly linear in roughness, so this is the pipeline's error of mean n over the slope, "
+             "not the relation's scatter"),
     ]
 
 
@@ -177,7 +226,7 @@ def _runtime_rows(runtime: Mapping[str, Mapping]) -> list[dict]:
         seconds = sum(float(_read_table(path, "\t")[0]["s"]) for path in spec["benchmarks"])
         rows.append(
             _row("runtime", f"{scene}: {spec['views']} views from raw files to labels, s", PAPER["runtime_s"], seconds,
-                 "logs/benchmarks/*/" + scene + ".tsv", _MAIN,
+                 "logs/benchmarks/*/" + scene + ".tsv", _MAIN, _MEASURED,
                  f"paper: ~5 min for {PAPER['runtime_views']} views; here the jobs' wall times summed (each a new process)")
         )
     return rows
@@ -213,7 +262,10 @@ def comparison(
     Returns
     -------
     list of dict
-        ``section``, ``quantity``, ``paper``, ``surffin``, ``source``, ``command``, ``note``.
+        ``section``, ``quantity``, ``paper``, ``surffin``, ``source``, ``command``, ``origin``
+        (a key of :data:`ORIGINS`: by construction where surffin's value echoes an input the
+        simulator's ``paper`` preset took from the paper, named in the note; measured otherwise)
+        and ``note``.
     """
     rows = _calibration_rows(diagnostics) if diagnostics is not None else []
     rows += _sensitivity_rows(slopes, separation)
@@ -225,13 +277,17 @@ def comparison(
 
 
 def to_markdown(rows: Sequence[Mapping]) -> str:
-    """The rows as a Markdown table, one section after the other."""
-    lines = ["| section | quantity | paper | surffin | source | note |", "| --- | --- | --- | --- | --- | --- |"]
+    """The rows as a Markdown table, one section after the other, with the legend of the origins."""
+    columns = ("section", "quantity", "paper", "surffin", "origin", "source", "note")
+    cells = {"paper": _fmt, "surffin": _fmt, "source": lambda value: f"`{value}`"}
+    lines = ["| " + " | ".join(columns) + " |", "| " + " | ".join("---" for _ in columns) + " |"]
     for row in rows:
-        cells = [row["section"], row["quantity"], _fmt(row["paper"]), _fmt(row["surffin"]), f"`{row['source']}`", row["note"]]
-        lines.append("| " + " | ".join(str(c).replace("|", "\\|") for c in cells) + " |")
+        text = (cells.get(key, str)(row[key]) for key in columns)
+        lines.append("| " + " | ".join(cell.replace("|", "\\|") for cell in text) + " |")
+    legend = ["The origin column, for the synthetic `paper` campaign (on a real camera's campaign every row is measured):", ""]
+    legend += [f"- **{origin}**: {meaning}." for origin, meaning in ORIGINS.items()]
     commands = sorted({row["command"] for row in rows})
-    return "\n".join([*lines, "", "Regenerate with: " + "; ".join(f"`{c}`" for c in commands), ""])
+    return "\n".join([*lines, "", *legend, "", "Regenerate with: " + "; ".join(f"`{c}`" for c in commands), ""])
 
 
 def run_paper_comparison(
