@@ -2,7 +2,8 @@
 
 Run by hand: ``python benchmarks/bench_aoi.py [--repeat N] [--subset N]``.
 
-Table 1, one row per window, on a scene: the kernel's median time per frame, its
+Table 1, one row per window (``15-120``: the adaptive support, windows of 15 px
+doubling up to 120 px while the surface stays planar), on a scene: the kernel's median time per frame, its
 best (the machine is shared: the gap shows the load) and the median rate; a
 scipy cKDTree PCA (k = window**2 nearest points, tree build + queries on a
 subset of pixels, extrapolated per pixel) in the same process, and the ratio;
@@ -43,8 +44,10 @@ from surffin.geometry import _angle_of_incidence
 HEIGHT, WIDTH = 480, 640
 FX, FY = 565.0, 579.0
 NOISE = 0.9e-3
-WINDOWS = (7, 15, 21, 31, 61)
-ERROR_WINDOWS = (7, 11, 13, 15, 17, 21, 31)
+# Plane-fit supports (window, max_window): fixed windows, then the adaptive ones (windows doubling up to
+# max_window while the surface stays planar: the defaults of the items' and of the wall views' AOI).
+WINDOWS = ((7, 7), (15, 15), (21, 21), (31, 31), (61, 61), (15, 120), (21, 120))
+ERROR_WINDOWS = ((7, 7), (11, 11), (15, 15), (21, 21), (31, 31), (15, 120), (21, 120))
 DISTANCES = (0.3, 0.5, 0.8, 1.0)
 TILTS = (0.0, 30.0, 60.0)
 
@@ -67,9 +70,9 @@ def scene(distance: float = 0.8, tilt: float = 25.0, specimen: bool = True, seed
     return (rays * depth[..., None]).astype(np.float32), np.arccos(np.abs(cosine))
 
 
-def error_degrees(xyz: np.ndarray, truth: np.ndarray, window: int) -> tuple[np.ndarray, float]:
+def error_degrees(xyz: np.ndarray, truth: np.ndarray, support: tuple[int, int]) -> tuple[np.ndarray, float]:
     """aoi - truth (degrees) where the kernel gives an AOI, and the share of pixels without one."""
-    aoi, _ = _angle_of_incidence(xyz, window)
+    aoi, _ = _angle_of_incidence(xyz, support[0], max_window=support[1])
     has = np.isfinite(aoi)
     return np.rad2deg((aoi - truth)[has]), 1.0 - has.mean()
 
@@ -113,6 +116,11 @@ def kdtree_seconds_per_frame(xyz: np.ndarray, k: int, subset: int, repeat: int) 
     return float(np.median(times))
 
 
+def label(window: int, largest: int) -> str:
+    """``15`` for a fixed window, ``15-120`` for an adaptive one."""
+    return f"{window:>7d}" if largest == window else f"{window:>3d}-{largest:<3d}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=15, help="timed runs per window (median reported)")
@@ -124,14 +132,16 @@ def main() -> None:
     header = ("window", "ms/frame", "best ms", "Mpx/s", "kdtree Mpx/s", "speed-up")
     header += ("median err deg", "p95 err deg", "bias deg", "no AOI %")
     print(" | ".join(header))
-    for window in WINDOWS:
-        runs = timeit.repeat(lambda: _angle_of_incidence(xyz, window), number=1, repeat=args.repeat)
+    for window, largest in WINDOWS:
+        runs = timeit.repeat(
+            lambda: _angle_of_incidence(xyz, window, max_window=largest), number=1, repeat=args.repeat
+        )
         seconds = float(np.median(runs))
         reference = kdtree_seconds_per_frame(xyz, window * window, args.subset, max(3, args.repeat // 5))
-        signed, lost = error_degrees(xyz, truth, window)
+        signed, lost = error_degrees(xyz, truth, (window, largest))
         error = np.abs(signed)
         row = (
-            f"{window:6d}",
+            label(window, largest),
             f"{seconds * 1e3:8.1f}",
             f"{min(runs) * 1e3:7.1f}",
             f"{pixels / seconds / 1e6:5.1f}",
@@ -151,14 +161,14 @@ def main() -> None:
     print("median AOI error |aoi - truth|, deg, of a plain wall (tilt deg / distance m)")
     print(heading)
     for window, signed in errors.items():
-        print(" | ".join([f"{window:6d}", *(f"{np.median(np.abs(error)):6.2f}" for error in signed)]))
+        print(" | ".join([label(*window), *(f"{np.median(np.abs(error)):6.2f}" for error in signed)]))
     print()
     print(f"median signed AOI error aoi - truth, deg, of a plain wall: kernel / PCA ({args.subset} windows)")
     print(heading.replace(" | ", " |   ", 1).replace(" | ", "   | "))
     for window, signed in errors.items():
-        pca = [np.median(pca_error_degrees(xyz, truth, window, args.subset)) for xyz, truth in frames]
+        pca = [np.median(pca_error_degrees(xyz, truth, window[0], args.subset)) for xyz, truth in frames]
         cells = (f"{np.median(error):+.2f}/{reference:+.2f}" for error, reference in zip(signed, pca))
-        print(" | ".join([f"{window:6d}", *cells]))
+        print(" | ".join([label(*window), *cells]))
 
 
 if __name__ == "__main__":

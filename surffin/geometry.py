@@ -1,85 +1,30 @@
 """Angle of incidence and distance from organized point clouds (method step 2).
 
-Per pixel i of a frame, the normal n_i is that of a least-squares plane through
-the valid points of a ``window x window`` pixel neighbourhood, and
+Per pixel i, theta_i = arccos(|v_i . n_i|) and d_i = |P_i|, with v_i the unit ray to the
+point P_i and n_i the normal of a least-squares plane through the valid points of a
+neighbourhood of P_i. The plane is fitted in ray coordinates: a pinhole camera sees the
+plane n . P = c as an inverse depth q = 1/z = a x' + b y' + e, linear in x' = x/z and
+y' = y/z, which carry no range noise; so the ordinary least-squares fit of q has exact
+regressors and no errors-in-variables bias (a PCA plane tilts away from the ray under
+range noise). The ten moments of (x', y', q) are box-summed (cv2.boxFilter, float64,
+centred on the frame's mean), so a window costs the same whatever its size.
 
-    theta_i = arccos(|v_i . n_i|),   d_i = |P_i|,
+Depth discontinuities: two valid neighbours (or a pixel's two neighbours along a row,
+column or diagonal, which catches a band of mixed pixels) are on different surfaces when
+their log-depths differ by more than ``jump`` beyond what a surface at MAX_SLOPE_DEG
+(80 deg) from the plane normal to the ray gives over their angular spacing: the
+threshold follows the pixels' own ray spacing, not a focal length.
 
-with v_i the unit ray from the camera origin to the point P_i.
-
-The plane fit. A time-of-flight camera measures range along each pixel's ray:
-its depth noise lies along v_i, while the ray's direction is exact. A total
-least squares (PCA) plane, the smallest eigenvector of the points' scatter
-matrix, assumes isotropic noise; range noise adds ~N sigma^2 v v^T to that
-matrix and tilts the normal away from the ray, so the AOI comes out too large,
-by ~(sigma / s)^2 sin(theta) cos(theta) rad, with s the standard deviation of
-the window's points along the plane (towards v): as 1 / window^2. Measured at
-0.9 mm noise with 21 px windows: +0.3 to +1.1 deg on the rendered paper
-specimens (0.35 m, true AOI 6-40 deg), which biased the scattering coefficient
-n by -2.5 %; on a fronto-parallel wall at 0.3 m +1.55 deg (off-centre rays are
-oblique), nearly all of its 1.6 deg median error (15 px: +3.2 deg). Instead: a
-pinhole camera sees the plane n . P = c, in ray coordinates x' = x/z and
-y' = y/z, as z (n_x x' + n_y y' + n_z) = c, so the inverse depth
-
-    q = 1/z = a x' + b y' + e,   (a, b, e) = n / c,
-
-is exactly linear in x' and y', which carry no range noise. The ordinary least
-squares fit of q on (x', y', 1) has exact regressors, hence no errors-in-
-variables bias; the noise of q, ~sigma / z^2, is additive and nearly constant
-within a window (a weighting would gain nothing), and its nonlinearity scales q
-by 1 + O((sigma / z)^2) ~ 1e-5, which leaves the direction of (a, b, e) alone.
-The normal is (a, b, e) / |(a, b, e)|. Measured: the median signed AOI error
-on the same specimens is within +-0.1 deg (their sampling noise) and that of n
-within +-0.15 %; the AOI's spread about its median is 0.8-1.0 times the PCA
-fit's on walls at 0.3-1.0 m, and it costs ~20 % less time.
-
-Cost per pixel does not depend on the window. The ten moments (count, sum x',
-y', q, x'x', x'y', x'q, y'y', y'q, qq) are box-summed with ``cv2.boxFilter``
-(sliding sums, faster here than integral images and without their growing
-totals) in float64 around one centre per frame (per chunk under dask), the mean
-valid (x', y', q): box sums need one centre shared by all the windows they add
-up, and the centring keeps the window sums of the centred moments accurate
-(x' spans only ~0.025 across a 15 px window). The slope (a, b) solves the 2x2
-system of the centred second moments in closed form, e follows from the
-window's means, and the residual sum of squares is S_qq - a S_x'q - b S_y'q.
-Float64 leaves ~1e-10 rad on noiseless planes and 4e-8 rad at worst with a 0.3
-and a 5 m plane side by side over a 480x640 frame and 3x3 windows (far below
-the effect of depth noise); raw moments in float32 integral images make errors
-several times the noise's on a 240x320 frame and singular systems on a 480x640
-one. A window whose valid pixels are collinear (singular 2x2 system) has no
-plane. The per-pixel arithmetic runs in row blocks that stay in the cache.
-
-Depth discontinuities. Two valid pixels are on different surfaces when the
-farther is more than ``1 + jump`` times as deep (z) as the nearer. Both pixels
-of such a pair of adjacent pixels (8-neighbourhood) are marked as edge pixels,
-and so is the middle pixel of such a pair two pixels apart (row, column or
-diagonal): a one-pixel band of invalid or mixed ("flying") pixels between two
-surfaces is an edge too. The test is on connectivity, not on the depth
-difference to the centre pixel: a steep but continuous surface is one surface,
-up to a slope of tan(theta) = jump * f / 2 pixels of focal length f (80 deg for
-the defaults and f = 565; 76 deg along a diagonal of the pixel grid). ``jump`` must stay well above the depth noise
-(adjacent differences beyond ~5 noise sigma): 0.02 suits 0.9 mm noise from
-0.3 m on.
-
-Window choice. The window centred on each pixel gives a plane: its normal and
-its mean squared residual in depth units, the residual variance of q times
-mean(q)^-4 (dz = -z^2 dq), which on a plane is the depth noise whatever the
-face's tilt. A window is usable when it contains no edge pixel (box sum of the
-edge mask is zero), at least ``max(3, min_fraction * window**2)`` valid points
-and a plane. Each pixel then takes the plane of one of the 9 windows that
-contain it, centred on itself or half a window away (rows, columns, diagonals;
-centres inside the image): the first, in that order, that is usable and whose
-residual is at most twice the smallest among them. Near a depth jump, a crease
-(two faces meeting without a jump, such as a specimen's top and a visible side)
-or the image border, a pixel thus keeps a full-size window on its own face. On
-planar ground the noise rarely doubles a residual (windows of 7 px and more), so
-the centred window stays; and taking the first window within the factor rather
-than the least residual (which favours windows whose noise tilts the plane)
-keeps the choice from adding error. This costs 9 lookups per pixel. Edge pixels
-themselves, and pixels with no usable window (e.g. surfaces narrower than the
-window), get no normal (NaN). On a curved surface a shifted window estimates
-the normal half a window away; where all 9 windows straddle a crease (a face
-narrower than the window between creases) the normal is that of a mixture.
+The support adapts to the surface. At the base level each eligible pixel (valid, not an
+edge) takes the plane of one of the 9 windows of ``window`` pixels that contain it
+(centred, or shifted by half a window), the first whose mean squared depth residual is
+at most twice the smallest: near an edge or a crease it keeps a window on its own face.
+Each further level pools the moments over 2 x 2 cells and repeats the choice with windows
+twice as large, up to ``max_window``; the larger plane replaces a pixel's while the chosen
+window is usable (no edge, half valid) and its residual stays within 1.5 times the
+smallest base residual around the pixel (the local depth noise): a larger window on the
+same planar surface averages more noise, one across a crease or a curved surface fits
+worse and is refused. Measurements: ``docs/performance.md``.
 """
 
 from __future__ import annotations
@@ -93,17 +38,16 @@ import xarray as xr
 
 __all__ = ["angle_of_incidence", "DEFAULT_WINDOW", "DEFAULT_JUMP"]
 
-#: Default plane-fit window, pixels (side of the square neighbourhood). Measured at 0.9 mm depth
-#: noise (``benchmarks/bench_aoi.py``; rendered paper campaign): the median AOI error over the
-#: calibration geometry (0.3-1.0 m, tilts 0-60 deg) is 0.1-1.0 deg (worst fronto-parallel at
-#: 0.3 m; 13 px: 1.3, 11 px: 1.8 deg), within the paper's 0.27-1.7 deg; the AOI noise leaves n
-#: unbiased in the scattering fit (median |bias| <= 0.12 %; 11 px: -0.1 to -0.4 %) at a 1.0 %
-#: median n error (21 px: 0.6 %); and surfaces 15-20 px wide keep their AOI (valid pixels
-#: without one in the T1 scene: 1.8 %; 17 px: 2.4 %, 21 px: 3.8 %). The cost does not depend on
-#: the window.
+#: Default smallest plane-fit window, pixels (side of the square neighbourhood).
 DEFAULT_WINDOW = 15
-#: Default depth-jump threshold, relative: neighbours more than 2% deeper are another surface.
-DEFAULT_JUMP = 0.02
+#: Default depth-jump threshold, relative: neighbours whose depths differ by more than 1 % beyond what a
+#: surface at :data:`MAX_SLOPE_DEG` from the ray gives between them are on different surfaces.
+DEFAULT_JUMP = 0.01
+#: Default largest plane-fit window, pixels: windows of ``window * 2**k`` pixels up to this side are tried.
+DEFAULT_MAX_WINDOW = 120
+#: Steepest surface (angle between the surface and the plane normal to the ray, degrees) taken as one surface.
+MAX_SLOPE_DEG = 80.0
+_MAX_SLOPE = math.tan(math.radians(MAX_SLOPE_DEG))
 _MIN_FRACTION = 0.5
 # A window's pixels are collinear (no plane) when the determinant of the 2x2 scatter matrix of
 # their ray coordinates is below this fraction of the product of its diagonal (1 - correlation^2):
@@ -118,6 +62,9 @@ _CANDIDATES = ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (-1, 1), (1, 
 _PLANARITY = 2.0
 # (row, column) of the six second moments x'x', x'y', x'q, y'y', y'q, qq.
 _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+# A larger window replaces a pixel's plane when its mean squared residual is at most this many times
+# the smallest of the base windows that contain the pixel (the local noise).
+_GROWTH = 1.5
 # Pixels per block of the per-pixel arithmetic: its temporaries stay in the L2 cache.
 _BLOCK = 16384
 
@@ -126,6 +73,12 @@ def _check_window(window) -> int:
     if isinstance(window, bool) or not isinstance(window, numbers.Integral) or window < 3 or window % 2 == 0:
         raise ValueError(f"window must be an odd integer >= 3 (pixels), got {window!r}")
     return int(window)
+
+
+def _check_max_window(max_window, window: int) -> int:
+    if isinstance(max_window, bool) or not isinstance(max_window, numbers.Integral) or max_window < window:
+        raise ValueError(f"max_window must be an integer >= window ({window} pixels), got {max_window!r}")
+    return int(max_window)
 
 
 def _check_jump(jump) -> float:
@@ -145,19 +98,33 @@ def _aligned(shape: tuple[int, int], offsets) -> list[tuple[slice, slice]]:
     ]
 
 
-def _jump_edges(z: np.ndarray, valid: np.ndarray, jump: float) -> np.ndarray:
+def _jump_edges(points: np.ndarray, valid: np.ndarray, jump: float) -> np.ndarray:
     """Edge mask (H, W) bool of the depth discontinuities of one frame (module docstring)."""
-    log_z = np.full(z.shape, np.nan, dtype=np.float32)
-    np.log(z, out=log_z, where=valid)
-    threshold = np.float32(math.log1p(jump))
-    edge = np.zeros(z.shape, dtype=bool)
+    log_z = np.full(valid.shape, np.nan, dtype=np.float32)
+    np.log(points[2], out=log_z, where=valid)
+    rays = np.zeros((2, *valid.shape), dtype=np.float32)
+    for k in range(2):
+        np.divide(points[k], points[2], out=rays[k], where=valid)
+    edge = np.zeros(valid.shape, dtype=bool)
+
+    def step(first, second) -> np.ndarray:
+        # |d log z| - jump > tan(max slope) * ray spacing, compared in squares
+        excess = np.abs(log_z[first] - log_z[second])
+        excess -= np.float32(jump)
+        across = rays[0][first] - rays[0][second]
+        along = rays[1][first] - rays[1][second]
+        spacing = across * across
+        spacing += along * along
+        spacing *= np.float32(_MAX_SLOPE**2)
+        return (excess > 0) & (excess * excess > spacing)
+
     for dy, dx in _DIRECTIONS:
-        first, second = _aligned(z.shape, ((0, 0), (dy, dx)))
-        step = np.abs(log_z[first] - log_z[second]) > threshold
-        edge[first] |= step
-        edge[second] |= step
-        first, middle, last = _aligned(z.shape, ((0, 0), (dy, dx), (2 * dy, 2 * dx)))
-        edge[middle] |= np.abs(log_z[first] - log_z[last]) > threshold
+        first, second = _aligned(valid.shape, ((0, 0), (dy, dx)))
+        adjacent = step(first, second)
+        edge[first] |= adjacent
+        edge[second] |= adjacent
+        first, middle, last = _aligned(valid.shape, ((0, 0), (dy, dx), (2 * dy, 2 * dx)))
+        edge[middle] |= step(first, last)
     return edge
 
 
@@ -181,14 +148,14 @@ def _centre(coordinates: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return np.zeros(3)
 
 
-def _box_moments(points: np.ndarray, valid: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
-    """Box sums of the moments of the ray coordinates x' = x/z, y' = y/z and inverse depth q = 1/z.
+def _moments(points: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel moments of the ray coordinates x' = x/z, y' = y/z and inverse depth q = 1/z.
 
     Returns
     -------
     moments : (10, H, W) ndarray of float64
-        Box sums of count, x', y', q, x'x', x'y', x'q, y'y', y'q, qq, with x', y', q
-        taken relative to ``centre``.
+        count (the valid mask), x', y', q, x'x', x'y', x'q, y'y', y'q, qq, with x', y', q
+        taken relative to ``centre`` and zero at invalid pixels.
     centre : (3,) ndarray of float64
         The (x', y', q) subtracted, :func:`_centre`.
     """
@@ -203,12 +170,36 @@ def _box_moments(points: np.ndarray, valid: np.ndarray, window: int) -> tuple[np
         np.subtract(coordinates[k], centre[k], out=coordinates[k], where=valid)
     for k, (i, j) in enumerate(_PAIRS, start=4):
         np.multiply(coordinates[i], coordinates[j], out=moments[k])
-    for plane in moments:
-        _box(plane, window, out=plane)
     return moments, centre
 
 
-def _choose_windows(residual: np.ndarray, eligible: np.ndarray, window: int) -> np.ndarray:
+def _pool(image: np.ndarray) -> np.ndarray:
+    """Sums over 2 x 2 blocks of the last two axes (odd sizes padded with zeros)."""
+    height, width = image.shape[-2:]
+    if height % 2 or width % 2:
+        image = np.pad(image, [(0, 0)] * (image.ndim - 2) + [(0, height % 2), (0, width % 2)])
+    size = (image.shape[-1] // 2, image.shape[-2] // 2)
+    planes = image.reshape(-1, *image.shape[-2:])
+    pooled = np.empty((planes.shape[0], size[1], size[0]), dtype=image.dtype)
+    for plane, out in zip(planes, pooled):
+        # INTER_AREA at exactly half the size is the mean of each 2 x 2 block
+        cv2.resize(plane, size, dst=out, interpolation=cv2.INTER_AREA)
+    pooled *= 4.0
+    return pooled.reshape(*image.shape[:-2], size[1], size[0])
+
+
+def _upsample(cells: np.ndarray, level: int, shape: tuple[int, int]) -> np.ndarray:
+    """Each cell's value at the pixels it pools (cells of ``2**level`` pixels), cut to ``shape``."""
+    factor = 2**level
+    size = (cells.shape[-1] * factor, cells.shape[-2] * factor)
+    planes = cells.reshape(-1, *cells.shape[-2:])
+    repeated = np.empty((planes.shape[0], size[1], size[0]), dtype=cells.dtype)
+    for plane, out in zip(planes, repeated):
+        cv2.resize(plane, size, dst=out, interpolation=cv2.INTER_NEAREST)
+    return repeated.reshape(*cells.shape[:-2], size[1], size[0])[..., : shape[0], : shape[1]]
+
+
+def _choose_windows(residual: np.ndarray, eligible: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
     """The window each pixel takes, among the 9 that contain it (module docstring).
 
     Parameters
@@ -223,9 +214,11 @@ def _choose_windows(residual: np.ndarray, eligible: np.ndarray, window: int) -> 
 
     Returns
     -------
-    (H, W) ndarray of intp
+    source : (H, W) ndarray of intp
         Flat index of the centre of the chosen window; -1 at pixels not eligible
         and where none of the 9 windows is usable.
+    smallest : (H, W) ndarray of float32
+        The smallest residual of the 9 windows, inf where none is usable.
     """
     height, width = residual.shape
     half = window // 2
@@ -247,45 +240,46 @@ def _choose_windows(residual: np.ndarray, eligible: np.ndarray, window: int) -> 
     source += np.arange(width)
     source += np.arange(0, height * width, width)[:, None]
     source[~(eligible & (smallest < np.inf))] = -1
-    return source
+    return source, smallest
 
 
-def _points(xyz) -> tuple[np.ndarray, np.ndarray]:
-    """Planar float64 copy (3, H, W) of one frame and its valid mask (finite, z > 0)."""
-    xyz = np.asarray(xyz)
-    if xyz.ndim != 3 or xyz.shape[-1] != 3:
-        raise ValueError(f"xyz must have shape (H, W, 3), got {xyz.shape}")
-    points = np.ascontiguousarray(np.moveaxis(xyz, -1, 0), dtype=np.float64)
-    valid = np.isfinite(points).all(axis=0) & (points[2] > 0)
-    return points, valid
+def _level_planes(
+    moments: np.ndarray, centre: np.ndarray, edges: np.ndarray, eligible: np.ndarray, window: int, min_count: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Planes of the windows of one level of the moment pyramid, and the window each cell takes.
 
-
-def _window_planes(
-    points: np.ndarray, valid: np.ndarray, window: int, jump: float, min_fraction: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Plane of the window centred on every pixel of one frame, and the window each pixel takes.
+    Parameters
+    ----------
+    moments : (10, h, w) ndarray of float64
+        Per-cell sums of :func:`_moments` (one pixel per cell at the base level);
+        overwritten (the planes are computed in place).
+    centre : (3,) ndarray
+        The centre the moments are taken about.
+    edges, eligible : (h, w) ndarray
+        Edge pixels per cell (a window holding one is not usable); cells that may get a normal.
+    window : int
+        Window side, cells.
+    min_count : float
+        Fewest valid pixels of a usable window.
 
     Returns
     -------
-    normal : (3, H, W) ndarray of float64
-        Unit normal, unoriented, of the window centred on each pixel (meaningless
+    normal : (3, h, w) ndarray of float64
+        Unit normal, unoriented, of the window centred on each cell (meaningless
         where that window is not usable).
-    source : (H, W) ndarray of intp
-        Flat index of the centre of the window each pixel takes; -1 where none
-        (:func:`_choose_windows`).
+    residual : (h, w) ndarray of float64
+        Its mean squared depth residual, m^2; inf where not usable.
+    source : (h, w) ndarray of intp
+        :func:`_choose_windows`: flat index of the chosen window's centre, -1 for none.
+    smallest : (h, w) ndarray of float32
+        The smallest residual among the cell's 9 windows.
     """
-    window = _check_window(window)
-    jump = _check_jump(jump)
-    if not 0.0 <= min_fraction <= 1.0:
-        raise ValueError(f"min_fraction must be in [0, 1], got {min_fraction!r}")
-    edge = _jump_edges(points[2], valid, jump)
-    moments, centre = _box_moments(points, valid, window)
-    min_count = max(3, math.ceil(min_fraction * window * window - 1e-9))
-    usable = (_box(edge.astype(np.float32), window) == 0) & (moments[0] >= min_count)
-    # The planes overwrite the count and first moments block by block, once read: 10 MB less
-    # fresh memory per frame.
+    for plane in moments:
+        _box(plane, window, out=plane)
+    usable = (_box(edges.astype(np.float32), window) == 0) & (moments[0] >= min_count)
+    # The planes overwrite the count and first moments block by block, once read.
     normal, residual = moments[1:4], moments[0]
-    for rows in _row_blocks(*valid.shape):
+    for rows in _row_blocks(*usable.shape):
         count, sums, squares = moments[0, rows], moments[1:4, rows], moments[4:, rows]
         with np.errstate(invalid="ignore", divide="ignore"):  # empty or collinear windows: discarded below
             inverse = 1.0 / count
@@ -304,10 +298,81 @@ def _window_planes(
             variance = (sqq - a * sxq - b * syq) * inverse
             mean[2] *= mean[2]
             residual[rows] = np.where(planar, variance / (mean[2] * mean[2]), np.inf)
-    return normal, _choose_windows(residual, valid & ~edge, window)
+    source, smallest = _choose_windows(residual, eligible, window)
+    return normal, residual, source, smallest
 
 
-def _plane_normals(xyz, window: int, *, jump: float = DEFAULT_JUMP, min_fraction: float = _MIN_FRACTION) -> np.ndarray:
+def _levels(window: int, max_window: int) -> int:
+    """Levels of the window pyramid: windows of ``window * 2**k`` pixels, k < levels, up to ``max_window``."""
+    levels = 1
+    while window * 2**levels <= max_window:
+        levels += 1
+    return levels
+
+
+def _points(xyz) -> tuple[np.ndarray, np.ndarray]:
+    """Planar float64 copy (3, H, W) of one frame and its valid mask (finite, z > 0)."""
+    xyz = np.asarray(xyz)
+    if xyz.ndim != 3 or xyz.shape[-1] != 3:
+        raise ValueError(f"xyz must have shape (H, W, 3), got {xyz.shape}")
+    points = np.ascontiguousarray(np.moveaxis(xyz, -1, 0), dtype=np.float64)
+    valid = np.isfinite(points).all(axis=0) & (points[2] > 0)
+    return points, valid
+
+
+def _window_planes(
+    points: np.ndarray, valid: np.ndarray, window: int, jump: float, min_fraction: float, max_window: int
+) -> np.ndarray:
+    """The plane each pixel of one frame takes: its unit normal (3, H, W), unoriented, NaN where none.
+
+    The base level gives each eligible pixel the plane of one of the 9 windows
+    of ``window`` pixels that contain it; each further level doubles the window
+    (2 x 2 pixel cells) and replaces the plane while the chosen window of that
+    level is usable and its residual stays within :data:`_GROWTH` times the
+    smallest residual of the base windows (module docstring).
+    """
+    window = _check_window(window)
+    jump = _check_jump(jump)
+    max_window = _check_max_window(max_window, window)
+    if not 0.0 <= min_fraction <= 1.0:
+        raise ValueError(f"min_fraction must be in [0, 1], got {min_fraction!r}")
+    edges = _jump_edges(points, valid, jump)
+    eligible = valid & ~edges
+    moments, centre = _moments(points, valid)
+    levels = _levels(window, max_window)
+    pooled = _pool(moments) if levels > 1 else None
+    min_count = max(3, math.ceil(min_fraction * window * window - 1e-9))
+    normal, _, source, smallest = _level_planes(moments, centre, edges, eligible, window, min_count)
+    taken = source >= 0
+    out = normal.reshape(3, -1).take(np.where(taken, source, 0), axis=1).reshape(3, *valid.shape)
+    out[:, ~taken] = np.nan
+    limit = _GROWTH * smallest
+    edge_count, eligible_count = edges.astype(np.float32), eligible.astype(np.float32)
+    for level in range(1, levels):
+        moments, edge_count, eligible_count = pooled, _pool(edge_count), _pool(eligible_count)
+        pooled = _pool(moments) if level + 1 < levels else None
+        min_count = max(3, math.ceil(min_fraction * (window * 2**level) ** 2 - 1e-9))
+        normal, residual, source, _ = _level_planes(
+            moments, centre, edge_count > 0, eligible_count > 0, window, min_count
+        )
+        chosen = np.where(source >= 0, source, 0)
+        fit = np.where(source >= 0, residual.reshape(-1).take(chosen), np.inf)
+        taken &= _upsample(fit, level, valid.shape) <= limit
+        if not taken.any():
+            break
+        cells = normal.reshape(3, -1).take(chosen, axis=1).reshape(3, *source.shape)
+        np.copyto(out, _upsample(cells, level, valid.shape), where=taken)
+    return out
+
+
+def _plane_normals(
+    xyz,
+    window: int,
+    *,
+    jump: float = DEFAULT_JUMP,
+    min_fraction: float = _MIN_FRACTION,
+    max_window: int | None = None,
+) -> np.ndarray:
     """Unit normals of the local least-squares planes of one organized frame.
 
     Parameters
@@ -315,11 +380,13 @@ def _plane_normals(xyz, window: int, *, jump: float = DEFAULT_JUMP, min_fraction
     xyz : (H, W, 3) array_like of float32 or float64, metres
         Camera-frame points; a pixel is valid when x, y, z are finite and z > 0.
     window : int
-        Odd side (pixels, >= 3) of the square neighbourhood of each pixel.
+        Odd side (pixels, >= 3) of the base square neighbourhood of each pixel.
     jump : float, optional
-        Relative depth step between neighbours that separates two surfaces.
+        Relative depth step, beyond the steepest surface's, between neighbours that separates two surfaces.
     min_fraction : float, optional
-        Fraction of ``window**2`` valid points a window needs (at least 3 always).
+        Fraction of a window's pixels that must be valid (at least 3 always).
+    max_window : int, optional
+        Largest window side tried, pixels (default ``window``: the base windows only).
 
     Returns
     -------
@@ -329,16 +396,18 @@ def _plane_normals(xyz, window: int, *, jump: float = DEFAULT_JUMP, min_fraction
         (nearly) collinear.
     """
     points, valid = _points(xyz)
-    normal, source = _window_planes(points, valid, window, jump, min_fraction)
-    defined = source >= 0
-    normals = np.full((*valid.shape, 3), np.nan)
-    normals[defined] = normal.reshape(3, -1)[:, source[defined]].T
+    normals = np.moveaxis(_window_planes(points, valid, window, jump, min_fraction, max_window or window), 0, -1)
     normals[np.sum(normals * np.moveaxis(points, 0, -1), axis=-1) > 0] *= -1.0
     return normals
 
 
 def _angle_of_incidence(
-    xyz, window: int, *, jump: float = DEFAULT_JUMP, min_fraction: float = _MIN_FRACTION
+    xyz,
+    window: int,
+    *,
+    jump: float = DEFAULT_JUMP,
+    min_fraction: float = _MIN_FRACTION,
+    max_window: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Angle of incidence and distance of every pixel of one organized frame.
 
@@ -346,7 +415,7 @@ def _angle_of_incidence(
     ----------
     xyz : (H, W, 3) array_like of float32 or float64, metres
         As in :func:`_plane_normals`.
-    window, jump, min_fraction
+    window, jump, min_fraction, max_window
         As in :func:`_plane_normals`.
 
     Returns
@@ -357,49 +426,55 @@ def _angle_of_incidence(
         ``|P|``; NaN at invalid pixels only.
     """
     points, valid = _points(xyz)
-    normal, source = _window_planes(points, valid, window, jump, min_fraction)
-    normal = normal.reshape(3, -1)
+    normal = _window_planes(points, valid, window, jump, min_fraction, max_window or window)
     aoi = np.empty(valid.shape)
     distance = np.empty(valid.shape)
     for rows in _row_blocks(*valid.shape):
-        (x, y, z), (nx, ny, nz) = points[:, rows], normal.take(source[rows], axis=1)
+        (x, y, z), (nx, ny, nz) = points[:, rows], normal[:, rows]
         with np.errstate(invalid="ignore", divide="ignore"):  # invalid points: NaN below
             norm = np.sqrt(x * x + y * y + z * z)
             cosine = np.abs(nx * x + ny * y + nz * z) / norm
-        cosine[source[rows] < 0] = np.nan
         aoi[rows] = np.arccos(np.minimum(cosine, 1.0, out=cosine))
         norm[~valid[rows]] = np.nan
         distance[rows] = norm
     return aoi, distance
 
 
-def _frames(xyz: np.ndarray, window: int, jump: float) -> np.ndarray:
+def _frames(xyz: np.ndarray, window: int, jump: float, max_window: int) -> np.ndarray:
     """AOI and distance (..., H, W, 2) float32 of a stack of frames (..., H, W, 3)."""
     out = np.empty((*xyz.shape[:-1], 2), dtype=np.float32)
     for index in np.ndindex(xyz.shape[:-3]):
-        aoi, distance = _angle_of_incidence(xyz[index], window, jump=jump)
+        aoi, distance = _angle_of_incidence(xyz[index], window, jump=jump, max_window=max_window)
         out[index + (Ellipsis, 0)] = aoi
         out[index + (Ellipsis, 1)] = distance
     return out
 
 
-def _frames_dask(xyz, window: int, jump: float):
+def _frames_dask(xyz, window: int, jump: float, max_window: int):
     """:func:`_frames` on a dask array, lazily: chunks overlap by the reach of a pixel's windows.
 
-    A pixel's result depends on the pixels within ``2 * (window // 2) + 1`` rows and
-    columns (shifted windows, and the edge test one pixel beyond them). Chunks of
-    y and x get a halo that deep; the image border gets none (``boundary="none"``),
-    so every chunk sees exactly what the whole frame would, and the result equals
-    :func:`_frames` on the computed array up to rounding.
+    A pixel's result depends on the pixels within the reach of its largest
+    windows (shifted by half a window, on cells of ``2**(levels - 1)`` pixels,
+    and the edge test one pixel beyond them). Chunks of y and x get a halo that
+    deep, and chunk boundaries and halos fall on multiples of the largest cell,
+    so that every chunk pools the pixels into the same cells as the whole frame;
+    the image border gets none (``boundary="none"``), so every chunk sees
+    exactly what the whole frame would, and the result equals :func:`_frames`
+    on the computed array up to rounding.
     """
     import dask.array as da
 
-    halo = 2 * (window // 2) + 1
-    chunks = {xyz.ndim - 1: -1}
+    cell = 2 ** (_levels(window, max_window) - 1)
+    halo = cell * (2 * (window // 2) + 2) + 2
+    halo += -halo % cell
+    # one frame per chunk along the looped dimensions (views): frames are independent, so threads share them
+    chunks = {**dict.fromkeys(range(xyz.ndim - 3), 1), xyz.ndim - 1: -1}
     depth = dict.fromkeys(range(xyz.ndim), 0)
     for axis in (xyz.ndim - 3, xyz.ndim - 2):
-        if len(xyz.chunks[axis]) > 1 and xyz.shape[axis] > halo:
-            chunks[axis] = da.overlap.ensure_minimum_chunksize(halo, xyz.chunks[axis])
+        size = max(xyz.chunks[axis][0], halo)
+        size += -size % cell
+        if len(xyz.chunks[axis]) > 1 and xyz.shape[axis] > size:
+            chunks[axis] = size
             depth[axis] = halo
         else:
             chunks[axis] = -1
@@ -408,6 +483,7 @@ def _frames_dask(xyz, window: int, jump: float):
         _frames,
         window=window,
         jump=jump,
+        max_window=max_window,
         chunks=(*padded.chunks[:-1], (2,)),
         dtype=np.float32,
         meta=np.empty((0,) * xyz.ndim, dtype=np.float32),
@@ -415,14 +491,20 @@ def _frames_dask(xyz, window: int, jump: float):
     return da.overlap.trim_internal(out, depth, boundary="none")
 
 
-def _dispatch(xyz, window: int, jump: float):
+def _dispatch(xyz, window: int, jump: float, max_window: int):
     """:func:`_frames` or, on a dask array, :func:`_frames_dask`."""
     if isinstance(xyz, np.ndarray):
-        return _frames(xyz, window, jump)
-    return _frames_dask(xyz, window, jump)
+        return _frames(xyz, window, jump, max_window)
+    return _frames_dask(xyz, window, jump, max_window)
 
 
-def angle_of_incidence(xyz: xr.DataArray, *, window: int = DEFAULT_WINDOW, jump: float = DEFAULT_JUMP) -> xr.Dataset:
+def angle_of_incidence(
+    xyz: xr.DataArray,
+    *,
+    window: int = DEFAULT_WINDOW,
+    jump: float = DEFAULT_JUMP,
+    max_window: int = DEFAULT_MAX_WINDOW,
+) -> xr.Dataset:
     """Angle of incidence and distance of every pixel of organized point clouds.
 
     Parameters
@@ -433,14 +515,16 @@ def angle_of_incidence(xyz: xr.DataArray, *, window: int = DEFAULT_WINDOW, jump:
         ``["x", "y", "z"]`` when there is one). NaN marks an invalid pixel, as
         does z <= 0. Dimensions other than y, x, axis are looped over.
     window : int, optional
-        Odd side, pixels (>= 3), of the square neighbourhood of the plane fit.
-        The default (15) gives a median AOI error of 0.1-1.0 deg, and no
-        bias, at 0.9 mm depth noise from 1.0 down to 0.3 m
-        (:data:`DEFAULT_WINDOW`). A surface narrower than the window gets no
-        AOI.
+        Odd side, pixels (>= 3), of the smallest square neighbourhood of the
+        plane fit, which every pixel near an edge or crease keeps. A surface
+        narrower than the window gets no AOI.
     jump : float, optional
-        Relative depth step between neighbouring pixels that separates two
-        surfaces: a window never spans one (see the module docstring).
+        Relative depth step between neighbouring pixels, beyond what an 80 deg
+        slope gives, that separates two surfaces: a window never spans one
+        (see the module docstring).
+    max_window : int, optional
+        Largest window side tried, pixels (>= window): windows of ``window * 2**k``
+        pixels replace the smaller ones while the surface stays planar.
 
     Returns
     -------
@@ -448,7 +532,7 @@ def angle_of_incidence(xyz: xr.DataArray, *, window: int = DEFAULT_WINDOW, jump:
         ``aoi`` (view, y, x) float32, radians, in [0, pi/2]: NaN at invalid
         pixels, at depth edges and where no window has enough valid points;
         ``distance`` (view, y, x) float32, metres, ``|P|``: NaN at invalid
-        pixels. Attributes ``window`` and ``jump`` record the parameters.
+        pixels. Attributes ``window``, ``jump`` and ``max_window`` record the parameters.
         Lazy when ``xyz`` is dask-backed.
 
     Raises
@@ -456,13 +540,14 @@ def angle_of_incidence(xyz: xr.DataArray, *, window: int = DEFAULT_WINDOW, jump:
     TypeError
         If ``xyz`` is not a DataArray.
     ValueError
-        If ``window`` is not an odd integer >= 3, ``jump`` is not positive, or
+        If ``window`` is not an odd integer >= 3, ``max_window`` is smaller, ``jump`` is not positive, or
         ``xyz`` lacks a ``y``, ``x`` or ``axis`` (of size 3) dimension.
     """
     if not isinstance(xyz, xr.DataArray):
         raise TypeError(f"xyz must be an xarray.DataArray (view, y, x, axis), got {type(xyz).__name__}")
     window = _check_window(window)
     jump = _check_jump(jump)
+    max_window = _check_max_window(max_window, window)
     missing = [dim for dim in ("y", "x", "axis") if dim not in xyz.dims]
     if missing:
         raise ValueError(f"xyz must have dims (view, y, x, axis); missing {missing} in {xyz.dims}")
@@ -473,7 +558,7 @@ def angle_of_incidence(xyz: xr.DataArray, *, window: int = DEFAULT_WINDOW, jump:
         xyz = xyz.sel(axis=["x", "y", "z"])
     elif xyz.sizes["axis"] != 3:
         raise ValueError(f"xyz axis dimension must have size 3 (x, y, z), got {xyz.sizes['axis']}")
-    params = {"window": window, "jump": jump}
+    params = {"window": window, "jump": jump, "max_window": max_window}
     out = xr.apply_ufunc(
         _dispatch,
         xyz,

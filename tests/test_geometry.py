@@ -9,7 +9,14 @@ import xarray as xr
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from surffin.geometry import DEFAULT_JUMP, DEFAULT_WINDOW, _angle_of_incidence, _plane_normals, angle_of_incidence
+from surffin.geometry import (
+    DEFAULT_JUMP,
+    DEFAULT_MAX_WINDOW,
+    DEFAULT_WINDOW,
+    _angle_of_incidence,
+    _plane_normals,
+    angle_of_incidence,
+)
 
 FOCAL = 565.0
 
@@ -203,12 +210,14 @@ def step_scene(noise=0.0, band=None, seed=0, height=60, width=80):
     return xyz, truth
 
 
-@pytest.mark.parametrize("band,jump", [(None, DEFAULT_JUMP), ("nan", DEFAULT_JUMP), ("mixed", 0.03)])
-def test_step_is_not_bridged(band, jump):
-    # the mixed pixels sit ~2% in depth from either side: a jump of 3% misses both halves of
-    # the step and must catch it over the pair of pixels two apart
+@pytest.mark.parametrize("max_window", [None, 120])
+@pytest.mark.parametrize("band", [None, "nan", "mixed"])
+def test_step_is_not_bridged(band, max_window):
+    # the mixed pixels sit ~1.85% in depth from either side: the default threshold between neighbours
+    # (1% beyond the 1.0% of an 80 deg slope at this focal length) misses both halves of the step and
+    # must catch it over the pair of pixels two apart (3.0% against 3.7%)
     xyz, truth = step_scene(band=band)
-    aoi, _ = _angle_of_incidence(xyz, 15, jump=jump)
+    aoi, _ = _angle_of_incidence(xyz, 15, max_window=max_window)
     # only the pixels at the step lose their normal: both sides of a clean step, the band otherwise
     lost = np.flatnonzero(np.isnan(aoi).any(axis=0))
     assert list(lost) == ([39, 40] if band is None else [40])
@@ -216,13 +225,14 @@ def test_step_is_not_bridged(band, jump):
     assert np.nanmax(np.abs(aoi - truth)) < 1e-6
 
 
-def test_surface_narrower_than_the_window_gets_no_normal():
+@pytest.mark.parametrize("max_window", [None, 120])
+def test_surface_narrower_than_the_window_gets_no_normal(max_window):
     # a ridge 8 px wide, 2 cm proud: every 15 px window on it reaches the board
     offset = np.full((40, 80), 0.5)
     offset[:, 36:44] -= 0.02
     normal = [0.0, np.sin(np.deg2rad(20.0)), -np.cos(np.deg2rad(20.0))]
     xyz, _, truth = plane(normal, offset, 40, 80)
-    aoi, _ = _angle_of_incidence(xyz, 15)
+    aoi, _ = _angle_of_incidence(xyz, 15, max_window=max_window)
     assert np.isnan(aoi[:, 36:44]).all()
     assert np.isfinite(aoi[:, :35]).all() and np.isfinite(aoi[:, 45:]).all()
     assert np.nanmax(np.abs(aoi - truth)) < 1e-6
@@ -236,7 +246,7 @@ def test_noisy_step_near_edge_as_good_as_interior():
     errors = []
     for seed in range(3):
         xyz, truth = step_scene(noise=0.9e-3, seed=seed)
-        aoi, _ = _angle_of_incidence(xyz, 15)
+        aoi, _ = _angle_of_incidence(xyz, 15)  # the base windows alone: larger ones cannot fit beside the step
         errors.append(np.abs(aoi - truth))
     error = np.stack(errors)
     near = error[:, :, np.r_[33:39, 41:47]]  # within half a window of the step, off the edge columns
@@ -247,7 +257,8 @@ def test_noisy_step_near_edge_as_good_as_interior():
     assert np.percentile(near, 99) < 1.3 * np.percentile(interior, 99)
 
 
-def test_crease_without_depth_jump():
+@pytest.mark.parametrize("max_window", [None, 120])
+def test_crease_without_depth_jump(max_window):
     # two faces 40 deg apart meeting along column 40, as a specimen's top and a visible side:
     # no depth jump, but a window across the crease mixes the faces
     ray = rays(40, 80)
@@ -257,13 +268,46 @@ def test_crease_without_depth_jump():
     xyz = ray * depths.min(axis=0)[..., None]
     seen = np.stack(faces)[depths.argmin(axis=0)]
     truth = np.arccos(np.abs(np.sum(ray * seen, axis=-1)))
-    aoi, _ = _angle_of_incidence(xyz, 15)
+    aoi, _ = _angle_of_incidence(xyz, 15, max_window=max_window)
     assert np.isfinite(aoi).all()
     # every pixel more than one column off the crease has a window on its own face
     error = np.abs(aoi - truth)
     off = np.abs(np.arange(80) - 39.5) > 1
     assert error[:, off].max() < 1e-6
     assert error[:, ~off].max() < np.deg2rad(20.0)
+
+
+def test_larger_windows_cut_the_noise_where_the_surface_stays_planar():
+    # a 2 cm proud block on a board, 0.45 m away, tilted 30 deg, with 0.9 mm range noise
+    offset = np.full((240, 320), 0.45)
+    offset[60:180, 80:240] -= 0.02
+    normal = [0.0, np.sin(np.deg2rad(30.0)), -np.cos(np.deg2rad(30.0))]
+    xyz, _, truth = plane(normal, offset, 240, 320, noise=0.9e-3, seed=3)
+    base, _ = _angle_of_incidence(xyz, 15)
+    grown, _ = _angle_of_incidence(xyz, 15, max_window=120)
+    np.testing.assert_array_equal(np.isnan(grown), np.isnan(base))  # the same pixels get a normal
+    error_base, error_grown = np.rad2deg(np.abs(base - truth)), np.rad2deg(np.abs(grown - truth))
+    interior = np.zeros(truth.shape, bool)
+    interior[80:160, 110:210] = True  # at least 20 px inside the block
+    assert np.nanmedian(error_grown[interior]) < 0.2 * np.nanmedian(error_base[interior])
+    assert abs(np.nanmedian(np.rad2deg(grown - truth)[interior])) < 0.05  # no bias
+    # next to the block's edges the larger windows never straddle it: no pixel worse than the base's tail
+    assert np.nanmax(error_grown) < np.nanpercentile(error_base, 99.9)
+
+
+@pytest.mark.parametrize("focal", [70.0, 565.0, 1130.0])
+def test_depth_jump_does_not_depend_on_the_focal_length(focal):
+    # a plane tilted by 60 deg (AOI up to 76 deg at 70 px focal length) is one surface for any focal
+    # length; a step twice as deep as a 1 % step beyond an 80 deg slope over one pixel is an edge
+    tilt = np.deg2rad(60.0)
+    xyz, _, truth = plane([np.sin(tilt), 0.0, -np.cos(tilt)], 0.2, 30, 40, focal=focal)
+    aoi, _ = _angle_of_incidence(xyz, 9)
+    assert np.isfinite(aoi).all()
+    offset = np.full((30, 40), 0.5)
+    offset[:, 20:] += 2 * 0.5 * (DEFAULT_JUMP + np.tan(np.deg2rad(80.0)) / focal)
+    xyz, _, _ = plane([0.0, np.sin(np.deg2rad(20.0)), -np.cos(np.deg2rad(20.0))], offset, 30, 40, focal=focal)
+    aoi, _ = _angle_of_incidence(xyz, 9)
+    assert np.isnan(aoi[:, 19:21]).all() and np.isfinite(aoi[:, :15]).all()
 
 
 def test_steep_continuous_surface_is_one_surface():
@@ -413,14 +457,14 @@ def test_dataset_layout_and_attributes():
         assert ds[name].dims == ("view", "y", "x") and ds[name].dtype == np.float32
         assert ds[name].attrs["units"] in ("rad", "m") and ds[name].attrs["long_name"]
     assert ds.aoi.attrs["units"] == "rad" and ds.distance.attrs["units"] == "m"
-    assert ds.attrs["window"] == 7 and ds.attrs["jump"] == 0.03
+    assert ds.attrs["window"] == 7 and ds.attrs["jump"] == 0.03 and ds.attrs["max_window"] == DEFAULT_MAX_WINDOW
     xr.testing.assert_equal(ds.y, xyz.y)
     assert list(ds.view.values) == ["v0", "v1"]
-    expected, distance = _angle_of_incidence(xyz.values[1], 7, jump=0.03)
+    expected, distance = _angle_of_incidence(xyz.values[1], 7, jump=0.03, max_window=DEFAULT_MAX_WINDOW)
     np.testing.assert_allclose(ds.aoi.values[1], expected, atol=2e-7, rtol=0)
     np.testing.assert_allclose(ds.distance.values[1], distance, rtol=1e-7)
     defaults = angle_of_incidence(xyz).attrs
-    assert (defaults["window"], defaults["jump"]) == (DEFAULT_WINDOW, DEFAULT_JUMP)
+    assert (defaults["window"], defaults["jump"], defaults["max_window"]) == (DEFAULT_WINDOW, DEFAULT_JUMP, DEFAULT_MAX_WINDOW)
 
 
 def test_axis_coordinate_order_is_honoured():
