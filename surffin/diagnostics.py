@@ -351,15 +351,17 @@ def _truth_statistics(truth: xr.Dataset, region: Roi | None) -> dict:
     }
 
 
-def _calibration_window(calibration: xr.Dataset, path) -> tuple[int, float]:
-    """The AOI window and jump a calibration store was fitted with (its provenance)."""
+def _calibration_aoi(calibration: xr.Dataset, path) -> dict:
+    """The AOI parameters (window, jump, max_window) a calibration store was fitted with (its provenance)."""
     parameters = calibration.attrs.get("surffin_parameters", {})
-    if "window" not in parameters or "jump" not in parameters:
+    missing = [key for key in ("window", "jump", "max_window") if key not in parameters]
+    if missing:
         raise StoreError(
-            f"{path}: the calibration store does not record its AOI window and jump (surffin_parameters); refit it "
-            f"with this surffin"
+            f"{path}: the calibration store does not record its AOI parameters {missing} (surffin_parameters); "
+            f"refit it with this surffin"
         )
-    return int(parameters["window"]), float(parameters["jump"])
+    return {"window": int(parameters["window"]), "jump": float(parameters["jump"]),
+            "max_window": int(parameters["max_window"])}
 
 
 #: Sensor rows fitted at a time by :func:`wall_features`, which bounds its memory.
@@ -371,8 +373,7 @@ def wall_features(
     views: Sequence[str | os.PathLike],
     calibrations: Mapping[str, xr.Dataset],
     *,
-    window: int,
-    jump: float,
+    aoi: Mapping,
     min_views: int = 2,
     min_spread: float = DEFAULT_MIN_SPREAD,
 ) -> tuple[xr.Dataset, xr.Dataset]:
@@ -391,8 +392,8 @@ def wall_features(
         Wall view files.
     calibrations : mapping of str to Dataset
         Name -> calibration (``coef`` (term, y, x) on the full sensor, attr ``scale_k``).
-    window, jump
-        AOI plane-fit window and depth-jump threshold (those of the calibration).
+    aoi : mapping
+        AOI parameters ``window``, ``jump``, ``max_window`` (those of the calibration).
     min_views, min_spread
         Of :func:`~surffin.scattering.fit_scattering`.
 
@@ -410,12 +411,12 @@ def wall_features(
     scales = [float(calibrations[name].attrs["scale_k"]) for name in names]
     shape = (len(views), *campaign.crop.shape)
     reflectance = np.empty((len(names), *shape), dtype=np.float32)
-    aoi = np.empty(shape, dtype=np.float32)
+    angles = np.empty(shape, dtype=np.float32)
     for index, path in enumerate(views):
-        view = _observe(campaign, path, window, jump)
+        view = _observe(campaign, path, aoi)
         values = np.stack([view.intensity, view.distance, view.aoi])[:, rows, columns]
         values[:, ~view.valid[rows, columns]] = np.nan
-        aoi[index] = values[2]
+        angles[index] = values[2]
         for which, (coef, scale) in enumerate(zip(coefs, scales)):
             reflectance[which, index] = _with_reflectance(values, coef, scale, axis=0)[3]
     coords = {
@@ -427,7 +428,7 @@ def wall_features(
     observed = xr.Dataset(
         {
             "reflectance": (("calibration", "view", "y", "x"), reflectance, {"units": "1"}),
-            "aoi": (("view", "y", "x"), aoi, {"units": "rad"}),
+            "aoi": (("view", "y", "x"), angles, {"units": "rad"}),
         },
         coords=coords,
     )
@@ -673,7 +674,7 @@ def _wall_sets(campaign: Campaign, calibrations: Mapping[str, xr.Dataset]) -> di
     return sets
 
 
-def _wall_report(camp: Campaign, calibrations: Mapping[str, xr.Dataset], item_params: Mapping, window, jump):
+def _wall_report(camp: Campaign, calibrations: Mapping[str, xr.Dataset], item_params: Mapping, aoi: Mapping):
     """Feature spread of every wall set with every calibration, and the wall repeatability of two calibrations."""
     from surffin.ingest import describe_file
 
@@ -681,7 +682,7 @@ def _wall_report(camp: Campaign, calibrations: Mapping[str, xr.Dataset], item_pa
     fit_options = {key: item_params[key] for key in ("min_views", "min_spread") if key in item_params}
     for folder, views in _wall_sets(camp, calibrations).items():
         described = {str(Path(path).relative_to(camp.root)): describe_file(path) for path in views}
-        observed, fits = wall_features(camp, views, calibrations, window=window, jump=jump, **fit_options)
+        observed, fits = wall_features(camp, views, calibrations, aoi=aoi, **fit_options)
         for name, calibration in calibrations.items():
             inputs = calibration.attrs.get("surffin_inputs", {})
             in_fit = sum(inputs.get(relative) == description for relative, description in described.items())
@@ -774,7 +775,7 @@ def run_calibration_diagnostics(
                 raise StoreError(f"{path}: the calibration store keeps no wall observations (wall_obs); refit it "
                                  f"with this surffin")
             calibrations[name] = ds[["coef", "r2", "status", "wall_obs"]].load()
-        window, jump = _calibration_window(calibrations["first"], calibration)
+        aoi = _calibration_aoi(calibrations["first"], calibration)
         region = camp.crop
         report = {
             "campaign": str(camp.root),
@@ -795,7 +796,7 @@ def run_calibration_diagnostics(
             log.info("diagnostics: %s: mean R2 %.4f over the crop; variability %% plain %s, robust %s", name,
                      stats["fit"]["mean_r2"], _plain(stats["variability_percent"]["plain"]),
                      _plain(stats["variability_percent"]["robust"]))
-        spreads, wall_repeatability = _wall_report(camp, calibrations, item_params, window, jump)
+        spreads, wall_repeatability = _wall_report(camp, calibrations, item_params, aoi)
         report["wall_features"] = spreads
         grid = observed_grid(calibrations["first"])
         tables = {f"{name} calibration, crop": report["calibrations"][name]["correlation"] for name in calibrations}

@@ -28,16 +28,16 @@ from surffin.diagnostics import (
     wall_features,
 )
 from surffin.errors import CalibrationError
-from surffin.geometry import DEFAULT_JUMP
+from surffin.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW
 from surffin.pipeline import run_calibration
 from surffin.simulate import PRESETS
 from surffin.simulate.plan import REPEAT_FOLDERS
 from surffin.store import open_store
 
 TINY = PRESETS["tiny"]
-TINY_JUMP = 8 * DEFAULT_JUMP  # the tiny camera's focal length is 1/8 of the paper's (tests/data/tiny-config.yaml)
 HELD_OUT = "w005"
-ITEM_PARAMS = {"jump": TINY_JUMP}
+ITEM_PARAMS = {}
+AOI = {"window": 15, "jump": DEFAULT_JUMP, "max_window": DEFAULT_MAX_WINDOW}
 
 
 def calibration_dataset(coef, r2=None, status=None, scale_k=2.0):
@@ -154,10 +154,10 @@ def tiny(tmp_path_factory):
     root = tmp_path_factory.mktemp("diagnostics")
     surffin.simulate_campaign(root / "raw", "tiny")
     processed = root / "processed"
-    params = {"jump": TINY_JUMP, "exclude": [HELD_OUT]}
+    params = {"exclude": [HELD_OUT]}
     first = run_calibration(root / "raw", processed / "calibration.zarr", params=params)
     repeat = run_calibration(
-        root / "raw", processed / "repeat.zarr", params={"jump": TINY_JUMP}, folders=REPEAT_FOLDERS
+        root / "raw", processed / "repeat.zarr", folders=REPEAT_FOLDERS
     )
     return root, first, repeat
 
@@ -256,7 +256,7 @@ def test_wall_fit_per_pixel_equals_least_squares(tiny):
     root, first, _ = tiny
     camp = surffin.read_campaign(root / "raw")
     calibration = open_store(first).load()
-    observed, fits = wall_features(camp, camp.calibration.wall, {"first": calibration}, window=15, jump=TINY_JUMP)
+    observed, fits = wall_features(camp, camp.calibration.wall, {"first": calibration}, aoi=AOI)
     # the reflectance of one view: I / (k f) by hand from the cube's own AOI
     view = camp.read_view(camp.calibration.wall[3])
     rows, columns = camp.crop.slices
