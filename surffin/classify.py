@@ -11,16 +11,15 @@ keeps scale 1). The standardisation is stored in the training set
 stored samples whenever it is needed: nothing is pickled.
 
 :func:`classify` predicts every pixel with a k-nearest-neighbour classifier
-(the paper: k = 1), or leaves it unclassified (-1) instead of guessing: when a
-feature is missing, when the standard uncertainty of its smoothed R0 or n
-(:func:`surffin.features.features`) exceeds a bound, or when its features lie
-farther from every training sample than a fraction of
-:func:`class_separation`, the distance between the two closest classes (a
-surface unlike every specimen, such as the board the specimens lie on); the
-label image counts these pixels by reason. :func:`filter_labels` then removes
-isolated errors among the classified pixels: unclassified pixels neither vote
-nor receive a class, so the filter never fills in a pixel the classifier
-declined (the unclassified pixels are the same before and after it). The
+(the paper: k = 1), or leaves it unclassified (-1) instead of guessing: when
+fewer than two features exist, when its features are unlike every class (a
+surface such as the board the specimens lie on), or when the class model's
+posterior of its k-NN class is low (between classes); the label image counts
+these pixels by reason and ``unclassified_reason`` says which, per pixel.
+:func:`filter_labels` then removes isolated errors: classified pixels take the
+filter's class of the classified votes in their window; an unclassified pixel
+takes it only where most of its window is classified (an isolated abstention
+inside a region of one class), so unclassified regions (the board) stay so. The
 paper's median filter on class indices depends on the (arbitrary, here
 alphabetical) order of the classes: a window with 10 votes for class 0, 5 for
 class 1 and 10 for class 2 becomes class 1, the least frequent, because its
@@ -47,10 +46,10 @@ __all__ = [
     "FEATURES",
     "UNCLASSIFIED",
     "UNCLASSIFIED_REASONS",
+    "unclassified_counts",
     "training_set",
     "combine_training",
-    "fit_classifier",
-    "class_separation",
+    "class_model",
     "classify",
     "filter_labels",
     "score",
@@ -62,7 +61,7 @@ FEATURES = ("R0", "n", "variability")
 #: Label of a pixel with no class (a feature is missing, too uncertain, or unlike every class).
 UNCLASSIFIED = -1
 #: Why :func:`classify` leaves a pixel unclassified, in the order the checks apply.
-UNCLASSIFIED_REASONS = ("missing_feature", "uncertainty_unknown", "uncertainty_above_bound", "far_from_training")
+UNCLASSIFIED_REASONS = ("missing_feature", "far_from_training", "ambiguous")
 _UNCLASSIFIED_NAME = "(unclassified)"
 _FILTERS = ("median", "majority")
 
@@ -237,58 +236,20 @@ def _standardise(values: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.nd
     return (values - mean) / std
 
 
-def fit_classifier(training: xr.Dataset, k: int = 1, *, n_jobs: int | None = None):
-    """A k-nearest-neighbour classifier of raw feature vectors, fitted on a training set.
-
-    Parameters
-    ----------
-    training : Dataset
-        Output of :func:`training_set` (or :func:`combine_training`).
-    k : int, default 1
-        Number of neighbours (the paper: 1).
-    n_jobs : int, optional
-        Parallel jobs of the neighbour search (scikit-learn's meaning).
-
-    Returns
-    -------
-    sklearn.pipeline.Pipeline
-        Standardisation with the stored ``feature_mean``/``feature_std``, then
-        ``KNeighborsClassifier``; ``predict`` takes (pixel, feature) arrays in
-        the order of :data:`FEATURES` and returns class indices into
-        ``training.attrs["classes"]``.
-    """
-    from sklearn.neighbors import KNeighborsClassifier
-    from sklearn.pipeline import make_pipeline
-    from sklearn.preprocessing import FunctionTransformer
-
-    features = np.asarray(training["features"].transpose("sample", "feature").values, dtype=np.float64)
-    stored = _names(training["feature"].values)
-    if stored != list(FEATURES):
-        raise ValueError(f"training set features are {stored}; expected {list(FEATURES)}")
-    index = {name: i for i, name in enumerate(training.attrs["classes"])}
-    target = np.array([index[name] for name in _names(training["class"].values)], dtype=np.int16)
-    standardise = FunctionTransformer(
-        _standardise,
-        kw_args={"mean": training["feature_mean"].values, "std": training["feature_std"].values},
-    )
-    model = make_pipeline(standardise, KNeighborsClassifier(n_neighbors=_check_k(k, target.size), n_jobs=n_jobs))
-    return model.fit(features, target)
-
-
 def _label_attrs(classes: Sequence[str]) -> dict:
     return {
         "long_name": "surface finish class",
         "flag_values": list(range(len(classes))),
         "flag_meanings": " ".join(classes),
         "comment": (
-            f"{UNCLASSIFIED} = unclassified: a feature is missing, too uncertain, or far from every "
-            "training sample (counts by reason in attr unclassified)"
+            f"{UNCLASSIFIED} = unclassified: fewer than two features, unlike every class, or between classes "
+            "(counts by reason in attr unclassified)"
         ),
     }
 
 
-def class_separation(training: xr.Dataset) -> float:
-    """Smallest distance between the medians of two classes in the standardised feature space.
+def class_model(training: xr.Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and covariance of each class's standardised training features.
 
     Parameters
     ----------
@@ -297,64 +258,59 @@ def class_separation(training: xr.Dataset) -> float:
 
     Returns
     -------
-    float
-        ``min |m_a - m_b|`` over pairs of classes, with ``m`` the per-feature
-        median of a class's standardised samples ``(features - feature_mean) /
-        feature_std``: the distance the k-NN classifier must resolve between
-        its two closest classes.
-
-    Raises
-    ------
-    ValueError
-        The training set has fewer than two classes.
+    mean : (K, F) ndarray of float64
+        Per class (order of ``training.attrs["classes"]``) and feature (:data:`FEATURES`).
+    covariance : (K, F, F) ndarray of float64
+        Sample covariance (``ddof=1``) of each class's standardised samples, plus
+        1e-6 on the diagonal so that a class with a constant feature stays regular.
     """
-    classes = list(training.attrs["classes"])
-    if len(classes) < 2:
-        raise ValueError(f"class separation needs at least two classes, the training set has {classes}")
     values = np.asarray(training["features"].transpose("sample", "feature").values, dtype=np.float64)
     standard = _standardise(values, training["feature_mean"].values, training["feature_std"].values)
     names = np.array(_names(training["class"].values))
-    medians = np.stack([np.median(standard[names == name], axis=0) for name in classes])
-    distances = np.linalg.norm(medians[:, None] - medians[None], axis=-1)
-    return float(distances[np.triu_indices(len(classes), 1)].min())
+    groups = [standard[names == name] for name in training.attrs["classes"]]
+    short = [name for name, group in zip(training.attrs["classes"], groups) if group.shape[0] <= len(FEATURES)]
+    if short:
+        raise ValueError(
+            f"classes {short} have {len(FEATURES)} training samples or fewer, too few for their spread; "
+            f"give their specimens larger rois or more pixels"
+        )
+    mean = np.stack([group.mean(axis=0) for group in groups])
+    covariance = np.stack([np.cov(group, rowvar=False) for group in groups]) + 1e-6 * np.eye(len(FEATURES))
+    return mean, covariance
 
 
-def _check_fraction(name: str, value) -> float | None:
-    if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Real) or not value > 0):
-        raise ValueError(f"{name} must be a positive fraction of the class separation or None, got {value!r}")
+def _check_probability(name: str, value) -> float | None:
+    if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0 < value < 1):
+        raise ValueError(f"{name} must be a probability in (0, 1) or None, got {value!r}")
     return None if value is None else float(value)
 
 
-def _uncertainty_bounds(max_uncertainty: float | None, training: xr.Dataset, separation: float) -> dict[str, float | None]:
-    """The bound of each feature with an uncertainty, in its units (None: no bound).
-
-    ``max_uncertainty * separation`` in standardised units, i.e. times the
-    feature's standard deviation over the training samples.
-    """
-    if max_uncertainty is None:
-        return dict.fromkeys(UNCERTAINTY)
-    std = dict(zip(_names(training["feature"].values), training["feature_std"].values.tolist()))
-    return {name: max_uncertainty * separation * std[name] for name in UNCERTAINTY}
-
-
-def _uncertainty_flags(features: xr.Dataset, bounds: Mapping[str, float | None]) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels (row-major) whose bounded uncertainty is unknown (NaN), and those above its bound."""
+def _measurement_variance(features: xr.Dataset, training: xr.Dataset) -> np.ndarray:
+    """Per pixel (row-major) and feature, the variance of its own measurement in standardised units (0 if unknown)."""
     pixels = features.sizes["y"] * features.sizes["x"]
-    unknown, above = np.zeros(pixels, dtype=bool), np.zeros(pixels, dtype=bool)
-    for name, bound in bounds.items():
-        if bound is None:
-            continue
+    variance = np.zeros((pixels, len(FEATURES)))
+    std = training["feature_std"].values
+    for column, name in enumerate(FEATURES):
         variable = f"{name}_uncertainty"
-        if variable not in features:
-            raise ValueError(
-                f"features lack {variable}, needed by the bound max_uncertainty; "
-                "recompute the features store with this surffin, or drop the bound"
-            )
-        _check_grid(features[variable], variable)
-        values = np.asarray(features[variable].transpose("y", "x").values, dtype=np.float64).ravel()
-        unknown |= np.isnan(values)
-        above |= values > bound
-    return unknown, above
+        if name in UNCERTAINTY and variable in features:
+            _check_grid(features[variable], variable)
+            values = np.asarray(features[variable].transpose("y", "x").values, dtype=np.float64).ravel()
+            variance[:, column] = np.nan_to_num(values / std[column]) ** 2
+    return variance
+
+
+def _gaussian(standard: np.ndarray, variance: np.ndarray, mean: np.ndarray, covariance: np.ndarray):
+    """Squared Mahalanobis distance (N, K) of each pixel to each class and the class log-likelihood (N, K).
+
+    The covariance of class k at pixel i is the class's spread plus the pixel's own
+    measurement variance (diagonal).
+    """
+    total = covariance[None] + variance[:, None, :, None] * np.eye(standard.shape[1])  # (N, K, F, F)
+    offset = standard[:, None, :] - mean[None]
+    solved = np.linalg.solve(total, offset[..., None])[..., 0]
+    distance = np.einsum("nkf,nkf->nk", offset, solved)
+    log_likelihood = -0.5 * (distance + np.linalg.slogdet(total)[1])
+    return distance, log_likelihood
 
 
 def classify(
@@ -363,88 +319,156 @@ def classify(
     *,
     k: int = 1,
     n_jobs: int | None = None,
-    max_uncertainty: float | None = None,
-    max_distance: float | None = None,
-) -> xr.DataArray:
+    min_posterior: float | None = None,
+    outlier_probability: float | None = None,
+) -> xr.Dataset:
     """Class of every pixel of a feature image by k-nearest neighbours, or unclassified.
+
+    A pixel needs at least two of the three features; one that lacks a
+    feature is classified on the two it has (the classifier and the class
+    model restricted to them). The reject option judges each pixel against
+    a Gaussian model of every class (:func:`class_model`, in standardised
+    units) whose covariance is the class's own spread plus the pixel's
+    measurement variance (``R0_uncertainty``, ``n_uncertainty`` when present):
+
+    - far from every class (``outlier_probability``): the squared Mahalanobis
+      distance to the nearest class exceeds the chi-square quantile that all
+      but that share of the class's own pixels stay below (a surface unlike
+      every specimen, such as the board the specimens lie on);
+    - between classes (``min_posterior``): the posterior probability of the
+      k-NN's class (equal priors) is below the bound.
 
     Parameters
     ----------
     features : Dataset (y, x)
         With :data:`FEATURES` (output of :func:`surffin.features.features`),
-        and ``R0_uncertainty``, ``n_uncertainty`` when ``max_uncertainty`` is given.
+        and optionally ``R0_uncertainty``, ``n_uncertainty``.
     training : Dataset
         Output of :func:`training_set` or :func:`combine_training`.
     k : int, default 1
-        Number of neighbours.
+        Number of neighbours (the paper: 1).
     n_jobs : int, optional
         Parallel jobs of the neighbour search.
-    max_uncertainty : float, optional
-        Largest standard uncertainty of the smoothed R0 and n, as a fraction
-        of :func:`class_separation` in standardised units (so, for each
-        feature, that fraction of the separation times the feature's standard
-        deviation over the training samples): the bound follows the classes
-        to be told apart, whatever the camera and the specimens. A pixel whose
-        uncertainty exceeds its bound, or is unknown (NaN), is unclassified
-        rather than guessed. None: no bound.
-    max_distance : float, optional
-        Largest distance from a pixel's standardised features to the nearest
-        training sample, as a fraction of :func:`class_separation`; farther
-        pixels (surfaces unlike every class, such as the board the specimens
-        lie on) are unclassified. None: every pixel gets the nearest class.
+    min_posterior : float in (0, 1), optional
+        Smallest posterior probability of the assigned class; None: no bound.
+    outlier_probability : float in (0, 1), optional
+        Share of a class's own pixels allowed to lie as far from it as a rejected
+        pixel; None: every pixel gets a class.
 
     Returns
     -------
-    (y, x) DataArray of int16
-        Class index into ``training.attrs["classes"]`` (sorted class names),
-        -1 where unclassified; CF attrs ``flag_values`` (0..K-1) and
-        ``flag_meanings`` (the class names, space-separated); ``k``,
-        ``max_uncertainty``, ``uncertainty_bounds`` (per feature, its units),
-        ``max_distance``, ``distance_bound`` (the bound in standardised units,
-        when ``max_distance`` is given), ``class_separation`` and
-        ``unclassified``: the number of pixels left unclassified for each of
+    Dataset (y, x)
+        ``label`` int16: class index into ``training.attrs["classes"]`` (sorted
+        class names), -1 where unclassified; CF attrs ``flag_values`` (0..K-1)
+        and ``flag_meanings`` (the class names, space-separated); ``k``,
+        ``min_posterior``, ``outlier_probability`` and ``unclassified``: the
+        number of pixels left unclassified for each of
         :data:`UNCLASSIFIED_REASONS`, each pixel counted for the first reason
-        that applies. Computed eagerly: all pixels are predicted at once.
+        that applies. ``posterior`` float32: the posterior probability of the
+        k-NN's class under the class model, NaN where fewer than two features
+        exist. ``unclassified_reason`` int8: 0 classified, else 1 + the index of
+        the reason in :data:`UNCLASSIFIED_REASONS` (CF flags). Computed
+        eagerly: all pixels are predicted at once.
     """
-    model = fit_classifier(training, k, n_jobs=n_jobs)
-    max_uncertainty = _check_fraction("max_uncertainty", max_uncertainty)
-    max_distance = _check_fraction("max_distance", max_distance)
-    separation = class_separation(training) if (max_uncertainty, max_distance) != (None, None) else None
-    bounds = _uncertainty_bounds(max_uncertainty, training, separation)
-    values, keep = _feature_matrix(features)
-    unclassified = dict.fromkeys(UNCLASSIFIED_REASONS, 0)
-    unclassified["missing_feature"] = int((~keep).sum())
-    unknown, above = _uncertainty_flags(features, bounds)
-    for reason, flagged in (("uncertainty_unknown", unknown), ("uncertainty_above_bound", above)):
-        unclassified[reason] = int((keep & flagged).sum())
-        keep &= ~flagged
-    extra = {} if separation is None else {"class_separation": separation}
-    if max_distance is not None:
-        extra["distance_bound"] = max_distance * separation
-        if keep.any():
-            standard, neighbours = model[0].transform(values[keep]), model[-1]
-            far = neighbours.kneighbors(standard, 1)[0][:, 0] > extra["distance_bound"]
-            unclassified["far_from_training"] = int(far.sum())
-            keep[np.flatnonzero(keep)[far]] = False
+    classes = list(training.attrs["classes"])
+    min_posterior = _check_probability("min_posterior", min_posterior)
+    outlier_probability = _check_probability("outlier_probability", outlier_probability)
+    samples = np.asarray(training["features"].transpose("sample", "feature").values, dtype=np.float64)
+    target = np.array([classes.index(name) for name in _names(training["class"].values)], dtype=np.int16)
+    k = _check_k(k, target.size)
+    mean_std = training["feature_mean"].values, training["feature_std"].values
+    class_mean, class_covariance = class_model(training)
+    references = _standardise(samples, *mean_std)
+    values, _ = _feature_matrix(features)
+    standard = _standardise(values, *mean_std)
+    variance = _measurement_variance(features, training)
+    available = np.isfinite(values)
     labels = np.full(values.shape[0], UNCLASSIFIED, dtype=np.int16)
-    if keep.any():
-        labels[keep] = model.predict(values[keep])
+    posterior = np.full(values.shape[0], np.nan, dtype=np.float32)
+    reason = np.where(available.sum(axis=1) < 2, 1, 0).astype(np.int8)
+    patterns, inverse = np.unique(available, axis=0, return_inverse=True)
+    for pattern, rows in zip(patterns, (np.flatnonzero(inverse.ravel() == i) for i in range(len(patterns)))):
+        if pattern.sum() < 2:
+            continue
+        columns = np.flatnonzero(pattern)
+        model = _neighbours(references[:, columns], target, k, n_jobs)
+        points = standard[np.ix_(rows, columns)]
+        predicted = model.predict(points).astype(np.int16)
+        distance, log_likelihood = _gaussian(
+            points,
+            variance[np.ix_(rows, columns)],
+            class_mean[:, columns],
+            class_covariance[np.ix_(np.arange(len(classes)), columns, columns)],
+        )
+        probability = np.exp(log_likelihood - log_likelihood.max(axis=1, keepdims=True))
+        probability /= probability.sum(axis=1, keepdims=True)
+        chosen = probability[np.arange(rows.size), predicted]
+        keep = np.ones(rows.size, dtype=bool)
+        if outlier_probability is not None:
+            far = distance.min(axis=1) > _chi2_quantile(1.0 - outlier_probability, columns.size)
+            reason[rows[far]] = 1 + UNCLASSIFIED_REASONS.index("far_from_training")
+            keep &= ~far
+        if min_posterior is not None:
+            between = keep & (chosen < min_posterior)
+            reason[rows[between]] = 1 + UNCLASSIFIED_REASONS.index("ambiguous")
+            keep &= ~between
+        posterior[rows] = chosen
+        labels[rows[keep]] = predicted[keep]
     shape = (features.sizes["y"], features.sizes["x"])
-    out = xr.DataArray(labels.reshape(shape), dims=("y", "x"), coords={"y": features["y"], "x": features["x"]})
-    out.attrs = {
-        **_label_attrs(list(training.attrs["classes"])),
+    coords = {"y": features["y"], "x": features["x"]}
+    label = xr.DataArray(labels.reshape(shape), dims=("y", "x"), coords=coords)
+    label.attrs = {
+        **_label_attrs(classes),
         "k": int(k),
-        "max_uncertainty": max_uncertainty,
-        "uncertainty_bounds": bounds,
-        "max_distance": max_distance,
-        **extra,
-        "unclassified": unclassified,
+        "min_posterior": min_posterior,
+        "outlier_probability": outlier_probability,
+        "unclassified": unclassified_counts(reason),
     }
-    return out
+    probability = xr.DataArray(posterior.reshape(shape), dims=("y", "x"), coords=coords)
+    probability.attrs = {
+        "units": "1",
+        "long_name": "posterior probability of the k-NN class under the Gaussian class model (equal priors)",
+    }
+    why = xr.DataArray(reason.reshape(shape), dims=("y", "x"), coords=coords)
+    why.attrs = {
+        "long_name": "why the pixel is unclassified",
+        "flag_values": list(range(len(UNCLASSIFIED_REASONS) + 1)),
+        "flag_meanings": " ".join(("classified", *UNCLASSIFIED_REASONS)),
+    }
+    return xr.Dataset({"label": label, "posterior": probability, "unclassified_reason": why})
+
+
+def unclassified_counts(reason, where=None) -> dict[str, int]:
+    """Pixels per :data:`UNCLASSIFIED_REASONS` of an ``unclassified_reason`` array (0 = classified).
+
+    ``where`` (bool, same shape) restricts the count, e.g. to the pixels a label filter left unclassified.
+    """
+    reason = np.asarray(reason)
+    if where is not None:
+        reason = reason[np.asarray(where)]
+    counts = np.bincount(reason.ravel(), minlength=len(UNCLASSIFIED_REASONS) + 1)
+    return {name: int(counts[index + 1]) for index, name in enumerate(UNCLASSIFIED_REASONS)}
+
+
+def _neighbours(samples: np.ndarray, target: np.ndarray, k: int, n_jobs: int | None):
+    """A k-nearest-neighbour classifier of standardised features."""
+    from sklearn.neighbors import KNeighborsClassifier
+
+    return KNeighborsClassifier(n_neighbors=k, n_jobs=n_jobs).fit(samples, target)
+
+
+def _chi2_quantile(probability: float, dof: int) -> float:
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(probability, dof))
 
 
 def _filter_image(label: np.ndarray, size: int, kind: str) -> np.ndarray:
-    """Median or majority filter (H, W) int16 of a label image; -1 neither votes nor changes."""
+    """Median or majority filter (H, W) int16 of a label image; -1 does not vote (module docstring).
+
+    An unclassified pixel takes the filter's class where more than half of its
+    ``size x size`` window (pixels outside the image included) holds votes.
+    """
     label = label.astype(np.int32)
     valid = label >= 0
     if not valid.any():
@@ -459,8 +483,9 @@ def _filter_image(label: np.ndarray, size: int, kind: str) -> np.ndarray:
     else:
         best = counts.max(axis=0)
         centre = np.take_along_axis(counts, np.maximum(label, 0)[None], axis=0)[0]
-        filtered = np.where(centre == best, label, np.argmax(counts, axis=0))
-    return np.where(valid, filtered, UNCLASSIFIED).astype(np.int16)
+        filtered = np.where(valid & (centre == best), label, np.argmax(counts, axis=0))
+    filled = valid | (2 * counts.sum(axis=0) > size * size)
+    return np.where(filled, filtered, UNCLASSIFIED).astype(np.int16)
 
 
 def filter_labels(label: xr.DataArray, *, kind: str = "median", size: int = 5) -> xr.DataArray:
@@ -483,11 +508,10 @@ def filter_labels(label: xr.DataArray, *, kind: str = "median", size: int = 5) -
     -------
     (..., y, x) DataArray of int16
         Filtered labels, attrs of ``label``. Unclassified pixels (-1) and
-        pixels outside the image do not vote, and unclassified pixels stay
-        unclassified: the filter never invents a class where :func:`classify`
-        declined one (a missing feature, too uncertain, far from the training
-        set), so the counts of its ``unclassified`` attr hold for the filtered
-        image too. Lazy on dask input.
+        pixels outside the image do not vote; an unclassified pixel gets the
+        filter's class only where more than half of its window votes (an
+        isolated abstention among classified pixels), so unclassified regions
+        stay unclassified and grow no class beyond half a window. Lazy on dask input.
     """
     if kind not in _FILTERS:
         raise ValueError(f"kind must be one of {_FILTERS}, got {kind!r}")

@@ -112,7 +112,8 @@ __all__ = [
     "variance_inflation",
     "local_std",
     "select_roi",
-    "most_perpendicular_view",
+    "views_by_incidence",
+    "first_available",
     "variability",
     "features",
 ]
@@ -184,19 +185,27 @@ def _smooth_image(image: np.ndarray, weights: np.ndarray, min_weight: float) -> 
     return out
 
 
-def _local_std_image(image: np.ndarray, size: int, ddof: int, min_count: int) -> np.ndarray:
-    """Standard deviation (H, W) float64 over the finite pixels of each ``size x size`` box."""
-    valid = np.isfinite(image)
+def _local_std_image(
+    image: np.ndarray, noise: np.ndarray | None = None, *, size: int, ddof: int, min_count: int
+) -> np.ndarray:
+    """Standard deviation (H, W) float64 over the finite pixels of each ``size x size`` box.
+
+    With ``noise`` (a variance image), the box's mean noise variance is taken
+    out of the variance first; a pixel without a noise variance is missing.
+    """
+    valid = np.isfinite(image) if noise is None else np.isfinite(image) & np.isfinite(noise)
     centre = image[valid].mean() if valid.any() else 0.0
     values = np.where(valid, image - centre, 0.0)
     ones = np.ones(size)
     count = _correlate(valid.astype(np.float64), ones)
     total = _correlate(values, ones)
     squares = _correlate(values * values, ones)
-    out = np.full(image.shape, np.nan)
     keep = valid & (count >= max(min_count, ddof + 1))
-    np.divide(squares - total * total / np.where(keep, count, 1.0), count - ddof, out=out, where=keep)
-    return np.sqrt(np.maximum(out, 0.0))
+    safe = np.where(keep, count, 1.0)
+    variance = (squares - total * total / safe) / np.where(keep, count - ddof, 1.0)
+    if noise is not None:
+        variance -= _correlate(np.where(valid, noise, 0.0), ones) / safe
+    return np.where(keep, np.sqrt(np.maximum(variance, 0.0)), np.nan)
 
 
 def _per_image(*data: np.ndarray, kernel, out_dtype, **kwargs) -> np.ndarray:
@@ -533,6 +542,7 @@ def local_std(
     *,
     ddof: int = 1,
     min_count: int | None = None,
+    noise_variance: xr.DataArray | None = None,
 ) -> xr.DataArray:
     """NaN-aware standard deviation over the ``size x size`` box around each pixel.
 
@@ -548,13 +558,17 @@ def local_std(
     min_count : int, optional
         Minimum number of finite pixels in the box (and always more than
         ``ddof``); default ``ceil(0.25 size^2)``, 13 for 7 x 7.
+    noise_variance : DataArray, optional
+        Variance of each pixel's noise, on the grid of ``da``: the box's mean
+        is subtracted from its variance (clipped at 0), which leaves the
+        spread of the signal under the noise. Pixels without it count as missing.
 
     Returns
     -------
     (..., y, x) DataArray of float64
         Local standard deviation, same units as ``da``; NaN where ``da`` is NaN
         or the box holds too few finite pixels. Attrs ``window_size``, ``ddof``,
-        ``min_count``. Lazy on dask input.
+        ``min_count``, ``noise_corrected``. Lazy on dask input.
     """
     size = _check_size(size)
     if min_count is None:
@@ -562,8 +576,14 @@ def local_std(
     for name, value in (("ddof", ddof), ("min_count", min_count)):
         if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:
             raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
+    images = _as_float(da, "da")
+    if noise_variance is not None:
+        try:
+            images = list(xr.align(images, _as_float(noise_variance, "noise_variance"), join="exact"))
+        except ValueError as exc:
+            raise ValueError(f"local_std: da and noise_variance must be on the same grid ({exc})") from exc
     out = _image_filter(
-        _as_float(da, "da"),
+        images,
         _local_std_image,
         size // 2,
         np.nan,
@@ -578,6 +598,7 @@ def local_std(
         "window_size": size,
         "ddof": int(ddof),
         "min_count": int(min_count),
+        "noise_corrected": int(noise_variance is not None),
     }
     return out
 
@@ -606,8 +627,8 @@ def select_roi(obj: xr.DataArray | xr.Dataset, roi: Roi) -> xr.DataArray | xr.Da
     return obj.isel(index)
 
 
-def most_perpendicular_view(aoi: xr.DataArray, region: Roi | None = None):
-    """The view that sees the surface closest to normal incidence.
+def views_by_incidence(aoi: xr.DataArray, region: Roi | None = None) -> list:
+    """The views, from the one that sees the surface closest to normal incidence to the most oblique.
 
     Parameters
     ----------
@@ -618,9 +639,10 @@ def most_perpendicular_view(aoi: xr.DataArray, region: Roi | None = None):
 
     Returns
     -------
-    view label
-        The ``view`` coordinate value (view file stem) of the view with the
-        smallest median AOI over the finite pixels of ``region``.
+    list of view labels
+        The ``view`` coordinate values (view file stems) in the order of their
+        median AOI over the finite pixels of ``region``; views with no finite
+        AOI there come last, in their own order.
 
     Raises
     ------
@@ -635,7 +657,34 @@ def most_perpendicular_view(aoi: xr.DataArray, region: Roi | None = None):
     if not np.isfinite(medians).any():
         where = "anywhere" if region is None else f"in {region}"
         raise ValueError(f"no view has a finite angle of incidence {where}")
-    return aoi["view"][int(np.argmin(medians))].item()
+    return [aoi["view"][int(index)].item() for index in np.argsort(medians, kind="stable")]
+
+
+def first_available(data: xr.DataArray) -> tuple[xr.DataArray, xr.DataArray]:
+    """Per pixel, the value of the first view (in ``view`` order) that has one.
+
+    Parameters
+    ----------
+    data : (view, y, x) DataArray
+        NaN = missing.
+
+    Returns
+    -------
+    values : (y, x) DataArray
+        NaN where no view has a value; attrs of ``data``.
+    source : (y, x) DataArray of int16
+        Position along ``view`` of the view each value comes from, -1 where none.
+    """
+    _check_grid(data, "data", ("view", "y", "x"))
+    data = data.transpose("view", "y", "x")
+    values = data.isel(view=-1, drop=True)
+    source = xr.where(np.isfinite(values), data.sizes["view"] - 1, -1).astype(np.int16)
+    for index in range(data.sizes["view"] - 2, -1, -1):
+        image = data.isel(view=index, drop=True)
+        found = np.isfinite(image)
+        values = image.where(found, values)
+        source = source.where(~found, index).astype(np.int16)
+    return values.assign_attrs(data.attrs), source
 
 
 def variability(
@@ -645,18 +694,24 @@ def variability(
     *,
     ddof: int = 1,
     min_count: int | None = None,
+    relative_noise: xr.DataArray | None = None,
 ) -> xr.DataArray:
     """Spatial reflectance variability of one view: local std of ``R / cos(theta)``.
 
     Parameters
     ----------
     reflectance : (y, x) DataArray
-        Reflectance of one view (the most perpendicular one, see
-        :func:`most_perpendicular_view`) on that view's own pixel grid; NaN = missing.
+        Reflectance of one view on that view's own pixel grid; NaN = missing.
     aoi : (y, x) DataArray, radians
         Angle of incidence of the same view on the same grid.
     size, ddof, min_count
         As for :func:`local_std`.
+    relative_noise : (y, x) DataArray, optional
+        Relative noise standard deviation of each pixel's reflectance (the
+        reflectance store's ``reflectance_noise``). Its variance is taken out
+        (:func:`local_std`'s ``noise_variance``), so that the feature measures
+        the surface, not how weak its return was: without it the same finish
+        seen from farther off looks rougher.
 
     Returns
     -------
@@ -668,12 +723,16 @@ def variability(
     _check_grid(reflectance, "reflectance")
     _check_grid(aoi, "aoi")
     try:
-        reflectance, aoi = xr.align(reflectance, aoi, join="exact")
+        extra = [] if relative_noise is None else [relative_noise]
+        reflectance, aoi, *noise = xr.align(reflectance, aoi, *extra, join="exact")
     except ValueError as exc:
-        raise ValueError(f"variability: reflectance and aoi must be on the same (y, x) grid ({exc})") from exc
+        raise ValueError(
+            f"variability: reflectance, aoi and relative_noise must be on the same (y, x) grid ({exc})"
+        ) from exc
     cosine = np.cos(aoi.astype(np.float64))
     corrected = (reflectance / cosine).where(cosine > 0)
-    out = local_std(corrected, size, ddof=ddof, min_count=min_count)
+    variance = (corrected * noise[0]) ** 2 if noise else None
+    out = local_std(corrected, size, ddof=ddof, min_count=min_count, noise_variance=variance)
     out.attrs.update(
         units="1",
         long_name=f"spatial reflectance variability: local standard deviation of R / cos(AOI), {size}x{size} pixels",

@@ -13,9 +13,17 @@ import xarray as xr
 
 from surffin.calibration import reflectance
 from surffin.campaign import Roi
-from surffin.classify import classify, filter_labels
-from surffin.features import DEFAULT_SIZE, features, most_perpendicular_view, residual_correlation, variability
-from surffin.geometry import DEFAULT_JUMP, DEFAULT_WINDOW, angle_of_incidence
+from surffin.classify import UNCLASSIFIED, classify, filter_labels, unclassified_counts
+from surffin.features import (
+    DEFAULT_SIZE,
+    features,
+    first_available,
+    residual_correlation,
+    variability,
+    views_by_incidence,
+)
+from surffin.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW, DEFAULT_WINDOW, angle_of_incidence
+from surffin.noise import relative_noise
 from surffin.registration import register, registration_maps, warp
 from surffin.roughness import roughness_map
 from surffin.scattering import DEFAULT_MIN_SPREAD, fit_scattering
@@ -44,17 +52,31 @@ def _item_attrs(ingest: xr.Dataset) -> dict:
     return {key: ingest.attrs[key] for key in keys if key in ingest.attrs}
 
 
-def aoi_stage(ingest: xr.Dataset, *, window: int = DEFAULT_WINDOW, jump: float = DEFAULT_JUMP) -> xr.Dataset:
+def aoi_stage(
+    ingest: xr.Dataset,
+    *,
+    window: int = DEFAULT_WINDOW,
+    jump: float = DEFAULT_JUMP,
+    max_window: int = DEFAULT_MAX_WINDOW,
+) -> xr.Dataset:
     """Angle of incidence and distance of every view (method step 2)."""
-    ds = angle_of_incidence(ingest["xyz"], window=window, jump=jump)
+    ds = angle_of_incidence(ingest["xyz"], window=window, jump=jump, max_window=max_window)
     ds.attrs = {**ds.attrs, **_item_attrs(ingest)}
     return ds
 
 
 def reflectance_stage(ingest: xr.Dataset, aoi: xr.Dataset, calibration: xr.Dataset) -> xr.Dataset:
-    """Calibrated reflectance of every view on its own grid (paper eq. 2)."""
+    """Calibrated reflectance of every view on its own grid (paper eq. 2), and its relative noise.
+
+    ``reflectance_noise`` is each pixel's relative noise from its intensity and
+    the calibration's noise model (:mod:`surffin.noise`); a calibration
+    without one gives none.
+    """
     r = reflectance(ingest["intensity"], aoi["distance"], aoi["aoi"], calibration["coef"], calibration.attrs["scale_k"])
-    return xr.Dataset({"reflectance": r.where(ingest["valid"])}, attrs=_item_attrs(ingest))
+    ds = xr.Dataset({"reflectance": r.where(ingest["valid"])}, attrs=_item_attrs(ingest))
+    if "noise_variance" in calibration:
+        ds["reflectance_noise"] = relative_noise(ingest["intensity"], calibration).where(ingest["valid"])
+    return ds
 
 
 def registration_stage(
@@ -84,10 +106,15 @@ def features_stage(
 ) -> xr.Dataset:
     """The per-pixel features R0, n (smoothed fit) and variability (method step 5).
 
-    The variability comes from the most perpendicular view (smallest median
-    AOI over the item's roi, else over all its pixels), computed on that
-    view's own grid and then warped: resampling first would smooth the noise
-    it measures. The uncertainties of the smoothed R0 and n account for the
+    The variability of a pixel comes from the most perpendicular view that
+    sees it: the views are ranked by their median AOI over the item's roi
+    (else over all its pixels), the paper's choice of one view, and a pixel
+    that view misses takes the next view's. Each view's variability is
+    computed on its own grid and then warped: resampling first would smooth
+    the noise it measures. Where the reflectance comes with its relative
+    noise (``reflectance_noise``), the noise's variance is taken out of the
+    variability. ``variability_view`` (y, x) says which view, as a
+    position in the attr ``variability_views``. The uncertainties of the smoothed R0 and n account for the
     spatial correlation of the fit's residuals over the item
     (:func:`surffin.features.residual_correlation`).
     """
@@ -98,12 +125,26 @@ def features_stage(
         min_spread=min_spread,
     ).persist()
     correlation = residual_correlation(registered["reflectance"], registered["aoi"], fit, max_lag=size - 1)
-    view = most_perpendicular_view(aoi["aoi"], as_roi(roi))
-    own = variability(reflectance["reflectance"].sel(view=view), aoi["aoi"].sel(view=view), size=variability_size)
-    maps = registered[["map_x", "map_y"]].sel(view=[view])
-    warped = warp(own.expand_dims(view=[view]), maps).squeeze("view", drop=True)
+    order = views_by_incidence(aoi["aoi"], as_roi(roi))
+    noise = reflectance.get("reflectance_noise")
+    own = xr.concat(
+        [
+            variability(
+                reflectance["reflectance"].sel(view=v),
+                aoi["aoi"].sel(view=v),
+                size=variability_size,
+                relative_noise=None if noise is None else noise.sel(view=v),
+            )
+            for v in order
+        ],
+        dim=xr.DataArray(order, dims="view", name="view"),
+    )
+    warped, source = first_available(warp(own, registered[["map_x", "map_y"]].sel(view=order)))
     ds = features(fit, warped, size=size, error_correlation=correlation)
-    ds.attrs = {**ds.attrs, **registered.attrs, "variability_view": str(view)}
+    ds["variability_view"] = source.assign_attrs(
+        units="1", long_name="view the variability comes from: position in variability_views, -1 none"
+    )
+    ds.attrs = {**ds.attrs, **registered.attrs, "variability_views": [str(v) for v in order]}
     return ds
 
 
@@ -114,19 +155,25 @@ def labels_stage(
     k: int = 1,
     filter_kind: str = "median",
     filter_size: int = 5,
-    max_uncertainty: float | None = None,
-    max_distance: float | None = None,
+    min_posterior: float | None = None,
+    outlier_probability: float | None = None,
 ) -> xr.Dataset:
     """Per-pixel class labels of a scene, before and after the label filter (method step 6).
 
-    Pixels too uncertain (``max_uncertainty``) or unlike every class
-    (``max_distance``) are unclassified, as :func:`surffin.classify.classify`
-    says; the filter keeps them so.
+    Pixels unlike every class (``outlier_probability``) or between classes
+    (``min_posterior``) are unclassified, as :func:`surffin.classify.classify`
+    says; the filter fills isolated ones (:func:`surffin.classify.filter_labels`),
+    and ``label_filtered``'s ``unclassified`` attr counts those left by reason.
+    ``posterior`` is the class model's probability of each pixel's k-NN class.
     """
-    label = classify(features.compute(), training, k=k, max_uncertainty=max_uncertainty, max_distance=max_distance)
+    labels = classify(
+        features.compute(), training, k=k, min_posterior=min_posterior, outlier_probability=outlier_probability
+    )
+    label = labels["label"]
     filtered = filter_labels(label, kind=filter_kind, size=filter_size)
-    filtered.attrs = {**label.attrs, "filter": filter_kind, "filter_size": filter_size}
-    return xr.Dataset({"label": label, "label_filtered": filtered}, attrs=features.attrs)
+    left = unclassified_counts(labels["unclassified_reason"], where=filtered.values == UNCLASSIFIED)
+    filtered.attrs = {**label.attrs, "filter": filter_kind, "filter_size": filter_size, "unclassified": left}
+    return labels.assign(label_filtered=filtered).assign_attrs(features.attrs)
 
 
 def roughness_stage(features: xr.Dataset, *, relation: Mapping) -> xr.Dataset:
@@ -144,7 +191,7 @@ def process_item(ingest: xr.Dataset, calibration: xr.Dataset, *, roi=None, metho
     dict of Dataset
         ``aoi``, ``reflectance``, ``registered``, ``features`` (features computed).
     """
-    aoi = aoi_stage(ingest, **{key: params[key] for key in ("window", "jump") if key in params}).compute()
+    aoi = aoi_stage(ingest, **{key: params[key] for key in ("window", "jump", "max_window") if key in params}).compute()
     refl = reflectance_stage(ingest, aoi, calibration).compute()
     registered = registration_stage(ingest, aoi, refl, method=method, roi=roi)
     feature_params = {key: params[key] for key in ("size", "variability_size", "min_views", "min_spread") if key in params}

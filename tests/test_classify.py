@@ -9,6 +9,7 @@ import xarray as xr
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
+from scipy.stats import multivariate_normal
 from sklearn.neighbors import KNeighborsClassifier
 
 from surffin.campaign import Roi
@@ -16,11 +17,10 @@ from surffin.classify import (
     FEATURES,
     UNCLASSIFIED_REASONS,
     class_fractions,
-    class_separation,
+    class_model,
     classify,
     combine_training,
     filter_labels,
-    fit_classifier,
     score,
     training_set,
 )
@@ -92,14 +92,15 @@ def test_classify_separated_clusters_exactly():
     assert training.attrs["classes"] == ["S1", "S2", "S3"]
     for k, name in enumerate(["S1", "S2", "S3"]):
         scene = feature_image(CENTRES[name], seed=10 + k)
-        scene["R0"][2, 3] = np.nan
-        label = classify(scene, training, k=3, n_jobs=1)
+        scene["R0"][2, 3] = np.nan  # two features left: still classified
+        scene["R0"][4, 5] = scene["n"][4, 5] = np.nan  # one left: unclassified
+        label = classify(scene, training, k=3, n_jobs=1)["label"]
         assert label.dtype == np.int16 and label.dims == ("y", "x")
         assert label["y"][0] == Y0
-        assert label.values[2, 3] == -1
         expected = np.full(label.shape, k)
-        expected[2, 3] = -1
+        expected[4, 5] = -1
         np.testing.assert_array_equal(label.values, expected)
+        assert label.attrs["unclassified"] == dict.fromkeys(UNCLASSIFIED_REASONS, 0) | {"missing_feature": 1}
         assert label.attrs["flag_values"] == [0, 1, 2]
         assert label.attrs["flag_meanings"] == "S1 S2 S3"
 
@@ -115,22 +116,50 @@ def test_standardisation_keeps_a_huge_feature_from_dominating():
 
     training = training_set({"lo": (item(0.5, 1), "A", None), "hi": (item(0.6, 2), "B", None)})
     scene_a, scene_b = item(0.5, 3), item(0.6, 4)
-    assert (classify(scene_a, training).values == 0).mean() > 0.99
-    assert (classify(scene_b, training).values == 1).mean() > 0.99
+    assert (classify(scene_a, training)["label"].values == 0).mean() > 0.99
+    assert (classify(scene_b, training)["label"].values == 1).mean() > 0.99
     # the same neighbour search on raw features is no better than a coin
     raw = KNeighborsClassifier(1).fit(training["features"].values, training["class"].values)
     stacked = np.stack([scene_a[name].values.ravel() for name in FEATURES], axis=1)
     assert (raw.predict(stacked) == "A").mean() < 0.7
 
 
-def test_classifier_uses_the_stored_standardisation():
+def test_class_model_is_the_mean_and_covariance_of_standardised_samples():
     training = training_set(specimens())
-    model = fit_classifier(training, 1)
-    z = model[0].transform(training["features"].values)
-    np.testing.assert_allclose(z.mean(axis=0), 0, atol=1e-12)
-    np.testing.assert_allclose(z.std(axis=0), 1, rtol=1e-12)
-    with pytest.raises(ValueError, match="k must"):
-        fit_classifier(training, 0)
+    mean, covariance = class_model(training)
+    z = (training["features"].values - training["features"].values.mean(axis=0)) / training["features"].values.std(axis=0)
+    names = np.asarray(training["class"].values).astype(str)
+    for index, name in enumerate(training.attrs["classes"]):
+        np.testing.assert_allclose(mean[index], z[names == name].mean(axis=0), atol=1e-12)
+        np.testing.assert_allclose(covariance[index], np.cov(z[names == name].T) + 1e-6 * np.eye(3), rtol=1e-10)
+
+
+def test_classify_takes_the_features_a_pixel_has():
+    training = training_set(specimens())
+    scene = feature_image(CENTRES["S2"], seed=21)
+    scene["variability"][:] = np.nan
+    scene["R0"][:6] = 0.5 * (CENTRES["S1"][0] + CENTRES["S3"][0])  # R0 and n disagree; n decides with S2
+    label = classify(scene, training)["label"]
+    z = (training["features"].values - training["feature_mean"].values) / training["feature_std"].values
+    reference = KNeighborsClassifier(1).fit(z[:, :2], np.asarray(training["class"].values).astype(str))
+    pixels = np.stack([scene[name].values.ravel() for name in ("R0", "n")], axis=1)
+    expected = reference.predict((pixels - training["feature_mean"].values[:2]) / training["feature_std"].values[:2])
+    np.testing.assert_array_equal(np.array(training.attrs["classes"])[label.values.ravel()], expected)
+
+
+def test_posterior_is_the_gaussian_class_model_with_the_pixels_uncertainty():
+    training = training_set(specimens())
+    mean, covariance = class_model(training)
+    scene = with_uncertainty(feature_image(CENTRES["S1"], seed=22), r0=0.05, n=0.1)
+    labels = classify(scene, training)
+    std = training["feature_std"].values
+    for y, x in ((0, 0), (5, 7), (11, 15)):
+        pixel = np.array([scene[name].values[y, x] for name in FEATURES])
+        z = (pixel - training["feature_mean"].values) / std
+        extra = np.diag([(0.05 / std[0]) ** 2, (0.1 / std[1]) ** 2, 0.0])
+        density = [multivariate_normal(mean[c], covariance[c] + extra).pdf(z) for c in range(3)]
+        chosen = labels["label"].values[y, x]
+        assert labels["posterior"].values[y, x] == pytest.approx(density[chosen] / sum(density), rel=1e-5)
 
 
 def test_combine_training_through_zarr(tmp_path):
@@ -146,7 +175,9 @@ def test_combine_training_through_zarr(tmp_path):
     np.testing.assert_allclose(combined["feature_std"], pooled.std(axis=0), rtol=1e-14)
     # the pooled set classifies like one built in a single step
     scene = feature_image(CENTRES["S2"], seed=20)
-    np.testing.assert_array_equal(classify(scene, combined).values, classify(scene, training_set(specimens())).values)
+    np.testing.assert_array_equal(
+        classify(scene, combined)["label"].values, classify(scene, training_set(specimens()))["label"].values
+    )
 
 
 def test_training_cap_keeps_evenly_spread_samples_of_every_item():
@@ -184,94 +215,75 @@ def with_uncertainty(ds, r0=0.002, n=0.005):
     return ds.assign(R0_uncertainty=xr.full_like(ds["R0"], r0), n_uncertainty=xr.full_like(ds["n"], n))
 
 
-def test_uncertain_pixels_are_left_unclassified():
+def test_pixels_between_classes_are_left_unclassified():
     training = training_set(specimens())
-    std = dict(zip(FEATURES, training["feature_std"].values))
-    # bounds: 0.5 class separations in standardised units, i.e. times each feature's spread
-    bounds = {name: 0.5 * class_separation(training) * std[name] for name in ("R0", "n")}
-    scene = with_uncertainty(feature_image(CENTRES["S2"], seed=11), r0=0.5 * bounds["R0"], n=0.5 * bounds["n"])
-    scene["R0_uncertainty"][2:4, 5:9] = 1.1 * bounds["R0"]
-    scene["n_uncertainty"][7, 1] = 1.1 * bounds["n"]
-    scene["n_uncertainty"][9, 9] = np.nan
-    scene["variability"][0, 0] = np.nan
+    scene = with_uncertainty(feature_image(CENTRES["S2"], seed=11))
+    # row 2 walks from the centre of S1 to that of S2
+    for name, a, b in zip(FEATURES, CENTRES["S1"], CENTRES["S2"]):
+        scene[name][2] = a + (b - a) * np.linspace(0.0, 1.0, 16)
     free = classify(scene, training)
-    assert (free.values == 1).sum() == free.size - 1
-    assert free.attrs["unclassified"] == dict.fromkeys(UNCLASSIFIED_REASONS, 0) | {"missing_feature": 1}
-    bounded = classify(scene, training, max_uncertainty=0.5)
-    expected = free.values.copy()
-    expected[2:4, 5:9] = expected[7, 1] = expected[9, 9] = -1
-    np.testing.assert_array_equal(bounded.values, expected)
-    assert bounded.attrs["unclassified"] == {
-        "missing_feature": 1,
-        "uncertainty_unknown": 1,
-        "uncertainty_above_bound": 9,
-        "far_from_training": 0,
-    }
-    assert bounded.attrs["max_uncertainty"] == 0.5
-    assert bounded.attrs["uncertainty_bounds"] == pytest.approx(bounds, rel=1e-12)
-    # a looser bound keeps the pixels between the two
-    loose = classify(scene, training, max_uncertainty=0.6)
-    assert loose.attrs["unclassified"]["uncertainty_above_bound"] == 0
+    assert (free["label"].values >= 0).all()
+    between = free["posterior"].values < 0.9
+    assert 0 < between.sum() < 16 and between[2].sum() == between.sum()
+    bounded = classify(scene, training, min_posterior=0.9)
+    expected = np.where(between, -1, free["label"].values)
+    np.testing.assert_array_equal(bounded["label"].values, expected)
+    reasons = {"missing_feature": 0, "far_from_training": 0, "ambiguous": int(between.sum())}
+    assert bounded["label"].attrs["unclassified"] == reasons
 
 
-def test_uncertainty_bounds_are_checked():
+@pytest.mark.parametrize("bound", [0, 1, -0.5, "0.1", True])
+def test_reject_bounds_are_checked(bound):
     training = training_set(specimens())
-    scene = with_uncertainty(feature_image(CENTRES["S1"]))
-    for bound in (0, -1.0, "0.1", True):
-        with pytest.raises(ValueError, match="positive"):
-            classify(scene, training, max_uncertainty=bound)
-    with pytest.raises(ValueError, match="lack n_uncertainty.*recompute"):
-        classify(scene.drop_vars("n_uncertainty"), training, max_uncertainty=0.5)
-    # without a bound the uncertainties are not needed
-    assert (classify(scene.drop_vars("n_uncertainty"), training).values == 0).all()
+    scene = feature_image(CENTRES["S1"])
+    for name in ("min_posterior", "outlier_probability"):
+        with pytest.raises(ValueError, match=name):
+            classify(scene, training, **{name: bound})
 
 
-def test_class_separation_is_the_distance_of_the_closest_class_centres():
-    training = training_set(specimens())
-    centres = (np.array(list(CENTRES.values())) - training["feature_mean"].values) / training["feature_std"].values
-    pairs = [np.linalg.norm(centres[a] - centres[b]) for a in range(3) for b in range(a + 1, 3)]
-    assert class_separation(training) == pytest.approx(min(pairs), rel=0.02)
-    with pytest.raises(ValueError, match="two classes"):
-        class_separation(training_set({"a": (feature_image(CENTRES["S1"]), "S1", None)}))
-
-
-def test_pixels_far_from_the_training_set_are_left_unclassified():
+def test_pixels_far_from_every_class_are_left_unclassified():
     training = training_set(specimens())
     scene = feature_image(CENTRES["S3"], seed=12)
     scene["n"][:3] = 5.0  # a board unlike every class
-    nearest = classify(scene, training)
+    nearest = classify(scene, training)["label"]
     assert (nearest.values >= 0).all()
-    label = classify(scene, training, max_distance=0.5)
+    label = classify(scene, training, outlier_probability=1e-4)["label"]
     expected = np.full(label.shape, 2)
     expected[:3] = -1
     np.testing.assert_array_equal(label.values, expected)
     assert label.attrs["unclassified"]["far_from_training"] == 3 * 16
-    assert label.attrs["distance_bound"] == pytest.approx(0.5 * class_separation(training))
-    assert label.attrs["max_distance"] == 0.5
-    with pytest.raises(ValueError, match="max_distance"):
-        classify(scene, training, max_distance=0)
+    assert label.attrs["outlier_probability"] == 1e-4
 
 
-def test_labels_stage_keeps_unclassified_pixels_through_the_filter():
+def test_labels_stage_fills_isolated_abstentions_and_counts_what_is_left():
     training = training_set(specimens())
     scene = with_uncertainty(feature_image(CENTRES["S1"], seed=13))
-    scene["n_uncertainty"][4:7, 4:7] = 1.0
-    ds = labels_stage(scene, training, max_uncertainty=0.5, max_distance=0.5)
-    np.testing.assert_array_equal(ds["label"].values == -1, ds["label_filtered"].values == -1)
-    assert (ds["label_filtered"].values[4:7, 4:7] == -1).all()
-    assert ds["label_filtered"].attrs["unclassified"]["uncertainty_above_bound"] == 9
+    scene["n"][4:7, 8:11] = 5.0  # 9 pixels unlike every class, inside S1
+    scene["n"][:, :4] = 5.0  # and a strip of them along the left edge
+    ds = labels_stage(scene, training, min_posterior=0.5, outlier_probability=1e-4)
+    reason, label, filtered = ds["unclassified_reason"].values, ds["label"].values, ds["label_filtered"].values
+    np.testing.assert_array_equal(reason > 0, label == -1)
+    assert (reason[4:7, 8:11] == 1 + UNCLASSIFIED_REASONS.index("far_from_training")).all()
+    assert ds["label"].attrs["unclassified"]["far_from_training"] == 9 + 4 * scene.sizes["y"]
+    # 5 x 5 filter: the 3 x 3 patch is a minority of every window around it and is filled; the
+    # strip's pixels see at most 2 of 5 columns classified and stay unclassified
+    assert (filtered[4:7, 8:11] == 0).all()
+    assert (filtered[:, :4] == -1).all()
+    left = ds["label_filtered"].attrs["unclassified"]
+    assert sum(left.values()) == int((filtered == -1).sum()) and left["far_from_training"] == 4 * scene.sizes["y"]
+    assert ds["posterior"].dtype == np.float32 and reason.dtype == np.int8
 
 
 def brute_filter(label, size, kind):
-    """Label filter pixel by pixel: -1 and outside pixels do not vote, -1 stays -1."""
+    """Label filter pixel by pixel: -1 and outside pixels do not vote; -1 changes where over half the window votes."""
     r = size // 2
     padded = np.pad(label, r, constant_values=-1)
     out = label.copy()
     for i, j in np.ndindex(label.shape):
-        if label[i, j] < 0:
-            continue
         votes = padded[i : i + size, j : j + size]
         votes = np.sort(votes[votes >= 0])
+        if label[i, j] < 0 and 2 * votes.size <= size * size:
+            continue
         if kind == "median":
             out[i, j] = votes[(votes.size - 1) // 2]
         else:
@@ -320,7 +332,7 @@ def test_median_depends_on_class_order_and_majority_does_not():
     assert filter_labels(labels(swapped), kind="median").values[2, 2] == 1
 
 
-def test_unclassified_pixels_neither_vote_nor_change():
+def test_unclassified_pixels_do_not_vote_and_change_only_among_classified_ones():
     label = np.full((5, 5), -1)
     label[2, 2] = 0
     label[0, :3] = 1
@@ -330,6 +342,14 @@ def test_unclassified_pixels_neither_vote_nor_change():
         assert out[2, 2] == 1
         np.testing.assert_array_equal(out == -1, label == -1)
     assert (filter_labels(labels(np.full((4, 4), -1))).values == -1).all()
+    # an abstention among classified pixels is filled; a region of them (the board) stays
+    region = np.full((9, 9), 2)
+    region[4, 4] = -1
+    region[:, 7:] = -1
+    for kind in ("median", "majority"):
+        out = filter_labels(labels(region), kind=kind).values
+        assert out[4, 4] == 2
+        assert (out[:, 8] == -1).all()
 
 
 @settings(max_examples=40, deadline=None)

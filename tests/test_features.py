@@ -13,7 +13,8 @@ from surffin.features import (
     features,
     gaussian_sigma,
     local_std,
-    most_perpendicular_view,
+    first_available,
+    views_by_incidence,
     residual_correlation,
     select_roi,
     smooth,
@@ -220,7 +221,7 @@ def test_select_roi_uses_sensor_coordinates():
         select_roi(image, Roi((0, 10), (X0, X0 + 5)))
 
 
-def test_most_perpendicular_view():
+def test_views_by_incidence():
     rng = np.random.default_rng(1)
     aoi = np.deg2rad(np.stack([np.full((10, 12), 30.0), np.full((10, 12), 10.0), np.full((10, 12), 20.0)]))
     aoi += rng.normal(0, 0.01, aoi.shape)
@@ -228,13 +229,29 @@ def test_most_perpendicular_view():
     aoi[1, :, 6:] = np.deg2rad(60.0)
     aoi[0, :3] = np.nan
     cube = grid(aoi, view=["a", "b", "c"])
-    assert most_perpendicular_view(cube) == "c"  # median over all pixels: b's is 35 deg
-    assert most_perpendicular_view(cube, Roi((Y0, Y0 + 10), (X0, X0 + 6))) == "b"
-    # a view missing everywhere but on a few good pixels does not win through them
+    assert views_by_incidence(cube) == ["c", "a", "b"]  # medians over all pixels: 20, 30, 35 deg
+    assert views_by_incidence(cube, Roi((Y0, Y0 + 10), (X0, X0 + 6))) == ["b", "c", "a"]
+    # a view missing everywhere comes last
     cube[2] = np.nan
-    assert most_perpendicular_view(cube, Roi((Y0, Y0 + 10), (X0 + 6, X0 + 12))) == "a"
+    assert views_by_incidence(cube, Roi((Y0, Y0 + 10), (X0 + 6, X0 + 12))) == ["a", "b", "c"]
     with pytest.raises(ValueError, match="no view"):
-        most_perpendicular_view(cube * np.nan)
+        views_by_incidence(cube * np.nan)
+
+
+def test_first_available_takes_each_pixel_from_the_first_view_that_has_it():
+    rng = np.random.default_rng(2)
+    data = rng.random((3, 10, 12))
+    data[rng.random(data.shape) < 0.5] = np.nan
+    cube = grid(data, view=["a", "b", "c"])
+    for chunks in (None, {"y": 3, "x": 5}):
+        values, source = first_available(cube if chunks is None else cube.chunk(chunks))
+        for y, x in np.ndindex(10, 12):
+            finite = np.flatnonzero(np.isfinite(data[:, y, x]))
+            assert source.values[y, x] == (finite[0] if finite.size else -1)
+            if finite.size:
+                assert values.values[y, x] == data[finite[0], y, x]
+            else:
+                assert np.isnan(values.values[y, x])
 
 
 def lambertian_view(shape=(30, 40), rho=0.6, texture=0.0, seed=0):
