@@ -1,18 +1,24 @@
 import argparse
+import ast
 import dataclasses
 import filecmp
+from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy.ndimage
 import xarray as xr
+import yaml
 
 import surffin
 from surffin.cli import main
 from surffin.errors import CampaignError
 from surffin.simulate import (
+    FORMATS,
     PRESETS,
-    PinholeCamera,
+    UNITS,
     Material,
+    PinholeCamera,
     Scene,
     Texture,
     box_faces,
@@ -22,8 +28,12 @@ from surffin.simulate import (
     keyed_rng,
     look_at_pose,
     observe,
+    plan_campaign,
+    plane_face,
     render,
 )
+from surffin.simulate.presets import SceneLayout, another_piece
+from surffin.simulate.validation import VALIDATION
 
 TINY = PRESETS["tiny"]
 NOISE_FREE = dataclasses.replace(TINY, depth_noise=0.0, intensity_noise=0.0, dropout=0.0)
@@ -366,3 +376,322 @@ def test_cli(tmp_path, capsys):
     # through the surffin command: a second run is refused with a one-line error
     assert main(["simulate", str(tmp_path / "c"), "--preset", "tiny"]) == 2
     assert "already exists" in capsys.readouterr().err
+
+
+def test_default_presets_write_their_crop_and_first_view_references(noisy):
+    config = yaml.safe_load((noisy[0] / "campaign.yaml").read_text())
+    assert config["crop"] == {"y": list(TINY.crop[0]), "x": list(TINY.crop[1])}
+    items = {**config["specimens"], **config["scenes"]}
+    assert list(items) == ["S1", "S2", "S3", "S4", "T1"]
+    assert not any("reference" in entry for entry in items.values())
+    assert all(truth_of(noisy[1], name).attrs["reference_view"] == "v00" for name in items)
+
+
+# --- independence from the method ------------------------------------------------------------
+
+#: Modules of the method: the simulator's truth must not be made by the code it validates.
+METHOD_MODULES = (
+    "surffin.calibration",
+    "surffin.scattering",
+    "surffin.geometry",
+    "surffin.features",
+    "surffin.classify",
+    "surffin.registration",
+    "surffin.stages",
+)
+
+
+def imported_modules(path, package):
+    """Every module the import statements of ``path`` name (``from a import b``: a and a.b), relative ones resolved."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            parts = package.split(".")
+            base = ".".join(parts[: len(parts) - node.level + 1]) if node.level else ""
+            module = ".".join(part for part in (base, node.module) if part)
+            names.add(module)
+            names.update(f"{module}.{alias.name}" for alias in node.names)
+    return names
+
+
+def method_imports(path, package="surffin.simulate"):
+    return sorted(
+        name
+        for name in imported_modules(path, package)
+        if any(name == module or name.startswith(f"{module}.") for module in METHOD_MODULES)
+    )
+
+
+def test_simulator_imports_no_method_code(tmp_path):
+    folder = Path(surffin.simulate.__file__).parent
+    modules = sorted(folder.glob("*.py"))
+    assert {"instrument.py", "truth.py", "acquire.py", "validation.py"} <= {path.name for path in modules}
+    assert {path.name: method_imports(path) for path in modules if method_imports(path)} == {}
+    # the check sees every form of import, at any depth of the module
+    sample = tmp_path / "sample.py"
+    sample.write_text(
+        "import numpy\nfrom surffin import calibration\nfrom ..scattering import scattering_model\n"
+        "from .scene import render\ndef f():\n    import surffin.geometry as g\n"
+        "if False:\n    from surffin.stages import process_item\n"
+    )
+    assert method_imports(sample) == [
+        "surffin.calibration",
+        "surffin.geometry",
+        "surffin.scattering",
+        "surffin.scattering.scattering_model",
+        "surffin.stages",
+        "surffin.stages.process_item",
+    ]
+
+
+# --- design options --------------------------------------------------------------------------
+
+# tiny without noise, no crop, the second view as reference, and a second scene of other pieces
+VARIANT = dataclasses.replace(
+    NOISE_FREE,
+    name="tiny-variant",
+    crop=None,
+    reference_view=1,
+    scenes=(
+        SceneLayout(TINY.specimens, TINY.scene_rotations, TINY.scene_distance, TINY.scene_tilts),
+        SceneLayout(tuple(another_piece(s, "b") for s in TINY.specimens[:3]), (0.0, 90.0, 180.0), 0.6, (10.0, 30.0, 40.0)),
+    ),
+)
+
+
+@pytest.fixture(scope="module")
+def variant(tmp_path_factory):
+    return simulate(tmp_path_factory, "variant", VARIANT, fmt="mixed")
+
+
+def test_a_later_reference_view_is_written_and_read(variant):
+    config = yaml.safe_load((variant[0] / "campaign.yaml").read_text())
+    assert "crop" not in config
+    items = {**config["specimens"], **config["scenes"]}
+    assert list(items) == ["S1", "S2", "S3", "S4", "T1", "T2"]
+    assert all(entry["reference"] == "v01" for entry in items.values())
+    assert main(["check", str(variant[0])]) == 0
+    camp = surffin.read_campaign(variant[0])
+    assert (camp.crop.y, camp.crop.x) == ((0, TINY.camera.height), (0, TINY.camera.width))
+    rows, cols = np.indices(TINY.camera.shape)
+    for name, item in camp.items.items():
+        assert item.reference == "v01" and item.reference_view.stem == "v01"
+        truth = truth_of(variant[1], name)
+        assert truth.attrs["reference_view"] == "v01"
+        # the truth lies on the reference view's grid: its points, its AOI, its own coordinates
+        view = camp.read_view(item.reference_view)
+        np.testing.assert_allclose(np.linalg.norm(view.xyz[view.valid], axis=-1), truth.distance.values[view.valid], rtol=1e-6)
+        np.testing.assert_array_equal(truth.aoi.values, truth.aoi_view[1].values)
+        np.testing.assert_allclose(truth.u_ref[1].values, cols, atol=1e-9)
+        np.testing.assert_allclose(truth.v_ref[1].values, rows, atol=1e-9)
+        assert not np.allclose(truth.u_ref[0].values, cols, equal_nan=True)
+    for name, item in camp.specimens.items():
+        truth = truth_of(variant[1], name)
+        roi_rows, roi_cols = item.roi.slices
+        assert (truth.label.values[roi_rows, roi_cols] == camp.classes.index(item.cls)).all()
+    with np.load(camp.scenes["T2"].truth) as stored:
+        truth = truth_of(variant[1], "T2")
+        inner = truth.edge_distance.values >= TINY.label_margin
+        np.testing.assert_array_equal(stored["label"], np.where(inner, truth.label.values, -1))
+
+
+def test_two_scenes_give_two_truth_stores_of_their_own_pieces(variant):
+    assert sorted(path.name for path in variant[1].glob("T*.zarr")) == ["T1.zarr", "T2.zarr"]
+    first, second = truth_of(variant[1], "T1"), truth_of(variant[1], "T2")
+    assert "T1.S1.top" in first.surface.attrs["surfaces"]
+    assert {"T2.S1-b.top", "T2.S2-b.top", "T2.S3-b.top"} <= set(second.surface.attrs["surfaces"])
+    assert set(np.unique(second.label.values)) == {-1, 0, 1, 2}
+    assert second.distance.values[TINY.camera.height // 2, TINY.camera.width // 2] > 0.55
+
+
+def test_another_piece_is_another_draw_of_its_class():
+    camera = PinholeCamera(width=64, height=64, fx=70.0, fy=70.0)
+    pose = look_at_pose((0.0, 0.0, -0.01), 0.3, 0.0, 0.0)
+    specimen = PRESETS["paper"].specimens[2]
+    maps = [
+        render(Scene(box_faces("S", (0.0, 0.0), 0.2, 0.01, 0.0, piece.material, 0), seed=0), camera, pose)
+        for piece in (specimen, another_piece(specimen, "b"))
+    ]
+    top = maps[0].label == 0
+    for key in ("R0", "n"):
+        one, other = getattr(maps[0], key)[top], getattr(maps[1], key)[top]
+        assert np.corrcoef(one, other)[0, 1] < 0.5  # other textures ...
+        assert other.mean() == pytest.approx(one.mean(), rel=0.03)  # ... of the same class
+    piece = another_piece(specimen, "b", thickness=0.02)
+    assert (piece.name, piece.cls, piece.material.name) == ("S3-b", "S3", "plaster-S3-b")
+
+
+def test_specimens_may_have_their_own_thickness():
+    thick = dataclasses.replace(TINY.specimens[1], thickness=0.02)
+    preset = dataclasses.replace(TINY, specimens=(TINY.specimens[0], thick, *TINY.specimens[2:]))
+    plan = {acquisition.name: acquisition for acquisition in plan_campaign(preset, 0)}
+    tops = {face.name: face.centre[2] for face in (*plan["S1"].faces, *plan["S2"].faces, *plan["T1"].faces)}
+    assert tops["S1.top"] == -TINY.specimen_thickness and tops["S2.top"] == -0.02
+    assert tops["T1.S1.top"] == -TINY.specimen_thickness and tops["T1.S2.top"] == -0.02
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"reference_view": 3}, "reference_view 3 must index"),
+        ({"reference_view": 2, "scenes": (SceneLayout(TINY.specimens, TINY.scene_rotations, 0.5, (0.0, 20.0)),)}, "0 to 1"),
+        (
+            {"specimens": TINY.specimens[:2], "scenes": (SceneLayout(TINY.specimens[2:3], (0.0,), 0.5, TINY.scene_tilts),)},
+            "piece S3 is of class 'S3', which no specimen has",
+        ),
+    ],
+)
+def test_bad_designs_are_refused(change, message):
+    with pytest.raises(ValueError, match=message):
+        plan_campaign(dataclasses.replace(TINY, **change), 0)
+
+
+def test_intensity_floor_and_range_noise_grow_on_weak_returns():
+    camera = PinholeCamera(width=160, height=120, fx=150.0, fy=150.0)
+    preset = dataclasses.replace(
+        TINY,
+        camera=camera,
+        intensity_noise=0.02,
+        intensity_noise_max=0.02,
+        intensity_floor=6.0,
+        noise_reference=1000.0,
+        depth_noise=0.0009,
+        depth_noise_max=0.004,
+        dropout=0.0,
+        min_intensity=-np.inf,
+    )
+    instrument = draw_instrument(camera, TINY.coef_mean, TINY.coef_variability, TINY.gain, keyed_rng(0, "i"))
+    pose = look_at_pose((0.0, 0.0, 0.0), 0.5, 0.0, 0.0)
+    depth_std = {}
+    for R0, name in ((0.9, "strong"), (0.04, "weak"), (0.004, "capped")):
+        geometry = render(Scene([plane_face("wall", Material(name, R0, 1.0))], seed=0), camera, pose)
+        xyz, intensity = observe(geometry, instrument, preset, keyed_rng(0, "view", name))
+        f = instrument_function(instrument.coef, geometry.distance, geometry.aoi)
+        signal = instrument.gain * f * R0 * np.cos(geometry.aoi)  # Lambertian
+        intensity_sigma = np.hypot(0.02 * signal, 6.0)
+        depth_sigma = np.clip(0.0009 * np.sqrt(1000.0 / signal), 0.0009, 0.004)
+        depth_error = np.linalg.norm(xyz, axis=-1) - geometry.distance
+        assert ((intensity - signal) / intensity_sigma).std() == pytest.approx(1.0, rel=0.03), name
+        assert (depth_error / depth_sigma).std() == pytest.approx(1.0, rel=0.03), name
+        depth_std[name] = depth_error.std()
+    # 0.9 mm on strong returns (> 1000 counts), over 3 times more at ~60 counts, the 4 mm cap at ~6 counts
+    assert depth_std["strong"] == pytest.approx(0.0009, rel=0.03)
+    assert 3 * 0.0009 < depth_std["weak"] < 0.0039
+    assert depth_std["capped"] == pytest.approx(0.004, rel=0.03)
+
+
+# --- validation campaigns ----------------------------------------------------------------------
+
+PAPER_CAMERA = PinholeCamera(width=640, height=480, fx=565.0, fy=579.0)
+
+
+def centre_aoi(acquisition):
+    """Angle of incidence at the aim point of each view, degrees (the faces aimed at face -Z)."""
+    return [float(np.degrees(np.arccos(abs(pose[2, 2])))) for pose in acquisition.poses]
+
+
+@pytest.mark.parametrize("name", sorted(VALIDATION))
+def test_validation_campaign_design(name):
+    validation = VALIDATION[name]
+    preset = validation.preset
+    assert preset.name == name and preset.camera == PAPER_CAMERA
+    assert validation.fmt in FORMATS and validation.units in UNITS and isinstance(validation.poses, bool)
+    plan = plan_campaign(preset, 0)
+    by_kind = {kind: [a for a in plan if a.kind == kind] for kind in ("wall", "reference", "specimen", "scene")}
+    assert [len(a.poses) for a in by_kind["wall"]] == [48]
+    assert [len(a.poses) for a in by_kind["reference"]] == [3]
+    assert min(preset.wall_distances) == 0.3 and max(preset.wall_distances) == 1.0
+    assert min(preset.wall_tilts) == 0.0 and max(preset.wall_tilts) == 30.0
+    # specimens: 20 cm, 10-20 mm thick, 5 views at 0.45 m, centre AOIs of 1.5 to 39 deg
+    assert preset.specimen_size == 0.2 and preset.specimen_distance == 0.45
+    assert all(0.01 <= preset.thickness(specimen) <= 0.02 for specimen in preset.specimens)
+    for specimen in by_kind["specimen"]:
+        np.testing.assert_allclose(centre_aoi(specimen), (1.5, 11.0, 20.0, 29.0, 39.0), atol=1e-9)
+    # scenes T1, T2, ...: farther, at angles at least 4 deg from the specimens'
+    assert [scene.name for scene in by_kind["scene"]] == [f"T{k + 1}" for k in range(len(by_kind["scene"]))]
+    assert by_kind["scene"]
+    for scene, layout in zip(by_kind["scene"], preset.scene_layouts, strict=True):
+        assert layout.distance >= preset.specimen_distance + 0.14
+        assert (np.abs(np.subtract(centre_aoi(scene), centre_aoi(by_kind["specimen"][0]))) >= 4.0).all()
+        assert sorted({rotation % 360 for rotation in layout.rotations}) == [90.0, 180.0, 270.0]
+    # classes close in n (neighbours 7-9 % apart), R0 means within 5 %, on a darker board
+    n = np.sort([specimen.material.n for specimen in preset.specimens])
+    assert ((np.diff(n) / n[:-1] >= 0.07) & (np.diff(n) / n[:-1] <= 0.09)).all()
+    R0 = [specimen.material.R0 for specimen in preset.specimens]
+    assert max(R0) / min(R0) <= 1.05 and preset.board.R0 < 0.75 * min(R0)
+    assert all(specimen.roughness_mm is None for specimen in preset.specimens)
+    # noise: 2 % plus a floor, range noise 0.9 mm growing on weak returns
+    assert (preset.intensity_noise, preset.intensity_noise_max, preset.depth_noise) == (0.02, 0.02, 0.0009)
+    assert preset.intensity_floor > 0 and preset.depth_noise_max > preset.depth_noise
+
+
+def test_validation_campaigns_cover_the_required_kinds():
+    presets = {name: validation.preset for name, validation in VALIDATION.items()}
+    assert len(VALIDATION) >= 6
+    assert any(v.fmt == "ply" and v.units == "mm" and v.preset.crop is None and v.poses for v in VALIDATION.values())
+    assert any(v.fmt == "raw" for v in VALIDATION.values()) and any(v.fmt == "mixed" for v in VALIDATION.values())
+    assert any(preset.reference_view > 0 for preset in presets.values())
+    assert any(len(preset.scene_layouts) >= 2 for preset in presets.values())
+    assert any(max(layout.distance for layout in preset.scene_layouts) >= 0.75 for preset in presets.values())
+    other_pieces = [
+        name
+        for name, preset in presets.items()
+        if all(piece not in preset.specimens for piece in preset.scene_layouts[-1].pieces)
+    ]
+    assert other_pieces
+    assert any(max(s.material.R0 for s in preset.specimens) < 0.6 for preset in presets.values())  # darker
+
+
+@pytest.mark.parametrize("name", ["val-plaster", "val-concrete"])
+def test_validation_classes_spread_and_overlap_like_the_paper(name):
+    # each specimen's reference view at full size; R0 and n smoothed by the method's 7 x 7 Gaussian
+    preset = VALIDATION[name].preset
+    ranges = {}
+    for acquisition in plan_campaign(preset, 0):
+        if acquisition.kind != "specimen":
+            continue
+        geometry = render(Scene(acquisition.faces, seed=0), preset.camera, acquisition.poses[0])
+        inside = (geometry.label >= 0) & (geometry.edge_distance >= 0.01)
+        assert inside.sum() > 40_000
+        for key in ("R0", "n"):
+            smooth = scipy.ndimage.gaussian_filter(np.nan_to_num(getattr(geometry, key)), 1.4, truncate=3 / 1.4)
+            low, middle, high = np.percentile(smooth[inside], [5, 50, 95])
+            ranges[acquisition.name, key] = (low, high)
+            spread = (high - low) / middle
+            assert (0.07 <= spread <= 0.10) if key == "R0" else (0.028 <= spread <= 0.042), (acquisition.name, key, spread)
+    names = [specimen.name for specimen in preset.specimens]
+    for first in names:  # every two classes' R0 ranges overlap, their n ranges do not
+        for second in names[names.index(first) + 1 :]:
+            (a, b), (c, d) = ranges[first, "R0"], ranges[second, "R0"]
+            assert a < d and c < b, (first, second)
+            (a, b), (c, d) = ranges[first, "n"], ranges[second, "n"]
+            assert b < c or d < a, (first, second)
+
+
+def test_cli_renders_a_validation_campaign_in_its_own_format(monkeypatch, tmp_path):
+    calls = []
+
+    def record(directory, preset, seed, **options):
+        calls.append((preset.name, seed, options))
+        return Path(directory) / "campaign.yaml"
+
+    monkeypatch.setattr("surffin.simulate.acquire.simulate_campaign", record)
+    parser = argparse.ArgumentParser()
+    cli_parser(parser)
+    for argv in (
+        ["--validation", "val-concrete", "--seed", "3"],
+        ["--validation", "val-concrete", "--format", "npz", "--no-poses"],
+        ["--preset", "tiny"],
+        [],
+    ):
+        assert cli_run(parser.parse_args([str(tmp_path / "c"), *argv])) == 0
+    assert [(name, seed, options["fmt"], options["units"], options["poses"]) for name, seed, options in calls] == [
+        ("val-concrete", 3, "ply", "mm", True),
+        ("val-concrete", 0, "npz", "mm", False),
+        ("tiny", 0, "npz", "m", True),
+        ("paper", 0, "npz", "m", True),
+    ]
+    with pytest.raises(SystemExit):
+        parser.parse_args([str(tmp_path / "c"), "--preset", "tiny", "--validation", "val-raw"])

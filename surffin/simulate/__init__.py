@@ -9,12 +9,14 @@ like the real camera's. :func:`simulate_campaign` writes them as a campaign
 
 Modules: :mod:`~surffin.simulate.camera` (geometry, poses),
 :mod:`~surffin.simulate.scene` (faces, textures, ray casting),
-:mod:`~surffin.simulate.instrument` (radiometry, noise),
+:mod:`~surffin.simulate.instrument` (radiometry, noise; eq. 3 and eq. 5 written here,
+not imported from the method, so that the truth is not made by the code it checks),
 :mod:`~surffin.simulate.presets` (named designs and materials),
 :mod:`~surffin.simulate.plan` (the acquisitions of a campaign),
 :mod:`~surffin.simulate.truth` (truth stores),
 :mod:`~surffin.simulate.acquire` (rendering and writing a campaign),
-:mod:`~surffin.simulate.command` (``surffin simulate``).
+:mod:`~surffin.simulate.command` (``surffin simulate``),
+:mod:`~surffin.simulate.validation` (campaigns unlike ``paper``, for validation).
 
 The names below are imported on first use, so that the command line parser
 does not pay for xarray and zarr.
@@ -35,6 +37,11 @@ _LAZY = {
     "Preset": "presets",
     "Specimen": "presets",
     "plaster": "presets",
+    "SceneLayout": "presets",
+    "another_piece": "presets",
+    "class_material": "presets",
+    "VALIDATION": "validation",
+    "Validation": "validation",
     "PinholeCamera": "camera",
     "look_at_pose": "camera",
     "world_rays": "camera",
@@ -43,6 +50,7 @@ _LAZY = {
     "Instrument": "instrument",
     "draw_instrument": "instrument",
     "instrument_function": "instrument",
+    "scattering": "instrument",
     "observe": "instrument",
     "Face": "scene",
     "Geometry": "scene",

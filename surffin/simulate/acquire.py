@@ -27,10 +27,14 @@ from surffin.simulate.instrument import Instrument, draw_instrument, observe
 from surffin.simulate.plan import Acquisition, plan_campaign
 from surffin.simulate.presets import PRESETS, Preset
 from surffin.simulate.scene import Geometry, Scene, keyed_rng, render
-from surffin.simulate.truth import instrument_truth, item_truth, reference_coordinates, scene_truth_label
+from surffin.simulate.truth import (
+    instrument_truth,
+    item_truth,
+    reference_coordinates,
+    scene_truth_label,
+)
 from surffin.store import provenance, write_store
-from surffin.viewfile import VIEW_SUFFIXES, write_view
-from surffin.viewfile import write_atomically
+from surffin.viewfile import VIEW_SUFFIXES, write_atomically, write_view
 
 __all__ = ["simulate_campaign"]
 
@@ -123,13 +127,14 @@ def _acquire(acquisition: Acquisition, run: _Run) -> Geometry:
     Returns
     -------
     Geometry
-        Noise-free rendering of the reference (first) view.
+        Noise-free rendering of the reference view (``acquisition.reference``).
     """
     camera = run.preset.camera
     scene = Scene(acquisition.faces, run.seed, run.textures)
     folder = run.directory / acquisition.folder
     folder.mkdir(parents=True, exist_ok=True)
     per_view = []
+    reference_pose = acquisition.poses[acquisition.reference]
     views = zip(acquisition.stems, _file_names(acquisition, run.fmt), acquisition.poses)
     for index, (stem, name, pose) in enumerate(views):
         geometry = render(scene, camera, pose)
@@ -138,16 +143,24 @@ def _acquire(acquisition: Acquisition, run: _Run) -> Geometry:
         pose_written = pose if run.poses else None
         write_view(folder / name, xyz, intensity.astype(np.float32), units=run.units, pose=pose_written)
         run.progress.advance()
-        if index == 0:
+        if index == acquisition.reference:
             reference = geometry
         if acquisition.has_truth:
-            u_ref, v_ref = reference_coordinates(scene, camera, acquisition.poses[0], geometry)
+            u_ref, v_ref = reference_coordinates(scene, camera, reference_pose, geometry)
             per_view.append((geometry.aoi, u_ref, v_ref))
     if acquisition.has_truth:
         aoi, u_ref, v_ref = (np.stack(arrays) for arrays in zip(*per_view))
         store = item_truth(acquisition, run.preset, reference, aoi, u_ref, v_ref)
         write_store(store.assign_attrs(provenance("simulate", run.parameters)), run.truth / f"{acquisition.name}.zarr")
     return reference
+
+
+def _views_entry(acquisition: Acquisition) -> dict:
+    """``views``, and ``reference`` unless it is the first view (campaign.yaml's default)."""
+    entry = {"views": acquisition.folder}
+    if acquisition.reference != 0:
+        entry["reference"] = acquisition.reference_stem
+    return entry
 
 
 def _describe(acquisition: Acquisition, reference: Geometry, run: _Run) -> dict:
@@ -160,16 +173,14 @@ def _describe(acquisition: Acquisition, reference: Geometry, run: _Run) -> dict:
         return {"reference": {"views": acquisition.folder, "reflectance": float(preset.reference.R0), "roi": roi}}
     if acquisition.kind == "specimen":
         specimen = acquisition.specimen
-        return {
-            "class": specimen.cls,
-            "views": acquisition.folder,
-            "roi": _roi(acquisition, reference, preset.label_margin),
-            "roughness_mm": specimen.roughness_mm,
-        }
+        entry = {"class": specimen.cls, **_views_entry(acquisition), "roi": _roi(acquisition, reference, preset.label_margin)}
+        if specimen.roughness_mm is not None:
+            entry["roughness_mm"] = specimen.roughness_mm
+        return entry
     truth = f"{acquisition.folder}/{_SCENE_TRUTH}"
     label = scene_truth_label(reference, preset.label_margin)
     write_atomically(run.directory / truth, _npz_bytes(label=label, classes=np.array(preset.classes)))
-    return {"views": acquisition.folder, "truth": truth}
+    return {**_views_entry(acquisition), "truth": truth}
 
 
 def _check_target(directory: Path, truth: Path, plan: list[Acquisition], fmt: str) -> None:
@@ -295,11 +306,10 @@ def simulate_campaign(
     config: dict = {
         "name": f"synthetic {preset.name} campaign, seed {seed}",
         "camera": {"width": camera.width, "height": camera.height, "units": units, "intrinsics": camera.intrinsics()},
-        "crop": {"y": list(preset.crop[0]), "x": list(preset.crop[1])},
-        "calibration": {},
-        "specimens": {},
-        "scenes": {},
     }
+    if preset.crop is not None:
+        config["crop"] = {"y": list(preset.crop[0]), "x": list(preset.crop[1])}
+    config.update(calibration={}, specimens={}, scenes={})
     for acquisition in plan:
         reference = _acquire(acquisition, run)
         if acquisition.repeat:

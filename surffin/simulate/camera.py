@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["PinholeCamera", "look_at_pose", "world_rays", "to_camera"]
+__all__ = ["PinholeCamera", "look_at_pose", "to_camera", "world_rays"]
 
 _UP_HINT = np.array([0.0, 1.0, 0.0])
 

@@ -1,5 +1,10 @@
 """``surffin simulate``: the command line of :func:`~surffin.simulate.acquire.simulate_campaign`.
 
+``--preset NAME`` renders a named preset (default ``paper``; files as ``--format``,
+``--units`` and ``--no-poses`` say, default npz in m with poses). ``--validation
+NAME`` renders a validation campaign (:data:`~surffin.simulate.validation.VALIDATION`)
+instead, written in its own format, units and poses unless those options are given.
+
 Kept free of heavy imports, so that building the ``surffin`` parser stays cheap;
 the simulator itself is imported when the command runs.
 """
@@ -7,8 +12,10 @@ the simulator itself is imported when the command runs.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 from surffin.simulate.presets import PRESETS
+from surffin.simulate.validation import VALIDATION, Validation
 
 __all__ = ["FORMATS", "UNITS", "cli_parser", "cli_run"]
 
@@ -21,14 +28,30 @@ UNITS = ("m", "mm")
 def cli_parser(parser: argparse.ArgumentParser) -> None:
     """Add the arguments of ``surffin simulate`` to ``parser``."""
     parser.add_argument("directory", help="campaign directory to create (must not hold a campaign.yaml)")
-    parser.add_argument("--preset", default="paper", choices=sorted(PRESETS), help="acquisition design (default: paper)")
+    design = parser.add_mutually_exclusive_group()
+    design.add_argument("--preset", choices=sorted(PRESETS), help="acquisition design (default: paper)")
+    design.add_argument(
+        "--validation",
+        choices=sorted(VALIDATION),
+        help="a validation campaign: its design, and its format, units and poses unless given",
+    )
     parser.add_argument("--seed", type=int, default=0, help="random seed; same seed, same files (default: 0)")
     parser.add_argument(
-        "--format", dest="fmt", default="npz", choices=FORMATS, help="view file form; mixed cycles npz/ply/raw"
+        "--format", dest="fmt", choices=FORMATS, help="view file form; mixed cycles npz/ply/raw (default: npz)"
     )
-    parser.add_argument("--units", default="m", choices=UNITS, help="unit of xyz in npz and ply files (default: m)")
-    parser.add_argument("--no-poses", dest="poses", action="store_false", help="do not write camera poses")
+    parser.add_argument("--units", choices=UNITS, help="unit of xyz in npz and ply files (default: m)")
+    parser.add_argument("--no-poses", dest="poses", action="store_false", default=None, help="do not write camera poses")
     parser.add_argument("--truth", default=None, help="folder of the truth stores (default: <directory>-truth)")
+
+
+def _campaign(args: argparse.Namespace) -> Validation:
+    """The design and file options the arguments ask for: a validation campaign's, or a preset's with the defaults."""
+    if args.validation is not None:
+        chosen = VALIDATION[args.validation]
+    else:
+        chosen = Validation(PRESETS[args.preset or "paper"])
+    given = {key: getattr(args, key) for key in ("fmt", "units", "poses") if getattr(args, key) is not None}
+    return replace(chosen, **given)
 
 
 def cli_run(args: argparse.Namespace) -> int:
@@ -38,8 +61,15 @@ def cli_run(args: argparse.Namespace) -> int:
     """
     from surffin.simulate.acquire import simulate_campaign
 
+    campaign = _campaign(args)
     path = simulate_campaign(
-        args.directory, args.preset, args.seed, fmt=args.fmt, units=args.units, poses=args.poses, truth=args.truth
+        args.directory,
+        campaign.preset,
+        args.seed,
+        fmt=campaign.fmt,
+        units=campaign.units,
+        poses=campaign.poses,
+        truth=args.truth,
     )
     print(path)
     return 0

@@ -5,9 +5,15 @@ incidence theta is ``I = g * f_i(d, theta) * R(theta)`` with the per-pixel
 instrument function of the paper's eq. 5,
 ``f_i(d, theta) = (A_i + B_i / d^2) (C_i theta^2 + D_i theta + E_i)``, a global
 gain ``g`` (counts) and the surface's reflectance
-``R(theta) = R0 cos((2 - 1/n) theta)^n`` (eq. 3, zero beyond its lobe). Noise is added to the
-intensity (relative, stronger on weak returns) and to the range along each
-pixel's ray; weak returns, grazing angles and random dropouts become invalid.
+``R(theta) = R0 cos((2 - 1/n) theta)^n`` (eq. 3, zero beyond its lobe). Noise is
+added to the intensity (relative, stronger on weak returns, plus a floor in
+counts) and to the range along each pixel's ray (growing on weak returns); weak
+returns, grazing angles and random dropouts become invalid.
+
+Eq. 3 and eq. 5 are written here from the method's description, not imported
+from :mod:`surffin.scattering` or :mod:`surffin.calibration`: the truth of a
+synthetic campaign must not be made by the code it validates (a test keeps the
+simulator free of such imports, another checks that both agree).
 """
 
 from __future__ import annotations
@@ -17,15 +23,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from surffin.calibration import TERMS, instrument_function
-from surffin.scattering import scattering_model
 from surffin.simulate.camera import PinholeCamera
 from surffin.simulate.scene import Geometry
 
 if TYPE_CHECKING:
     from surffin.simulate.presets import Preset
 
-__all__ = ["TERMS", "Instrument", "instrument_function", "draw_instrument", "observe"]
+__all__ = ["TERMS", "Instrument", "draw_instrument", "instrument_function", "observe", "scattering"]
+
+#: Names of the instrument function's coefficients, in the order of ``coef``'s first axis.
+TERMS = ("A", "B", "C", "D", "E")
 
 # Weights of the radial (vignetting-like), smooth low-order and white parts of
 # each coefficient's spatial pattern before it is scaled to unit variance.
@@ -35,6 +42,49 @@ _WHITE_WEIGHT = 0.25
 _SMOOTH_ORDER = 3
 # A, B and E fall off towards the image border; C and D rise.
 _RADIAL_SIGN = (-1.0, -1.0, 1.0, 1.0, -1.0)
+
+
+def instrument_function(coef: np.ndarray, distance: np.ndarray, aoi: np.ndarray) -> np.ndarray:
+    """Eq. 5: ``f = (A + B / d^2) (C theta^2 + D theta + E)``.
+
+    Parameters
+    ----------
+    coef : (5, ...) ndarray
+        A, B (m^2), C, D, E along the first axis (:data:`TERMS`), broadcasting
+        against ``distance`` and ``aoi``.
+    distance : ndarray, metres
+    aoi : ndarray, radians
+
+    Returns
+    -------
+    ndarray
+        The broadcast of the inputs.
+    """
+    A, B, C, D, E = coef
+    distance_factor = A + B / np.square(distance)
+    angular_factor = C * np.square(aoi) + D * aoi + E
+    return distance_factor * angular_factor
+
+
+def scattering(aoi: np.ndarray, R0: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Eq. 3: ``R = R0 cos((2 - 1/n) theta)^n``, zero beyond the lobe.
+
+    Parameters
+    ----------
+    aoi : ndarray, radians
+    R0, n : ndarray or float
+        Reflectance at normal incidence and scattering coefficient (n > 0.5),
+        broadcasting against ``aoi``.
+
+    Returns
+    -------
+    ndarray
+        Reflectance; 0 where ``(2 - 1/n) theta >= pi/2`` (no return), NaN
+        where an input is NaN.
+    """
+    angle = (2.0 - 1.0 / np.asarray(n, dtype=np.float64)) * aoi
+    lobe = R0 * np.power(np.maximum(np.cos(angle), 0.0), n)
+    return np.where(angle >= np.pi / 2.0, 0.0, lobe)
 
 
 @dataclass(frozen=True, eq=False)
@@ -137,13 +187,29 @@ def draw_instrument(
     return Instrument(coef=coef, gain=float(gain))
 
 
+def _growing(level: float, cap: float, reference: float, signal: np.ndarray) -> np.ndarray:
+    """A noise level that grows as ``1/sqrt(signal)`` below ``reference`` counts, from ``level`` up to ``cap``.
+
+    A ``cap`` at or below ``level`` means no growth: ``level`` everywhere
+    (NaN where ``signal`` is NaN).
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.clip(level * np.sqrt(reference / signal), level, max(level, cap))
+
+
 def observe(
     geometry: Geometry, instrument: Instrument, preset: Preset, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
     """One noisy acquisition of what a camera sees.
 
-    The same random draws are made whatever the noise levels, so variants of a
-    preset differing only in noise share dropouts and noise patterns.
+    The intensity noise has the standard deviation
+    ``sqrt((sigma_rel I)^2 + intensity_floor^2)`` counts, with ``sigma_rel``
+    ``intensity_noise`` on returns stronger than ``noise_reference`` counts,
+    growing as ``1/sqrt(I)`` below up to ``intensity_noise_max``. The range
+    noise along the ray grows likewise from ``depth_noise`` up to
+    ``depth_noise_max`` (I the noise-free signal). The same random draws are
+    made whatever the noise levels, so variants of a preset differing only in
+    noise share dropouts and noise patterns.
 
     Parameters
     ----------
@@ -151,12 +217,8 @@ def observe(
         Noise-free geometry and material of the view.
     instrument : Instrument
     preset : Preset
-        Supplies ``intensity_noise`` (relative sigma on strong returns),
-        ``intensity_noise_max`` (its cap on weak returns), ``noise_reference``
-        (counts where the relative sigma reaches ``intensity_noise``; it grows as
-        ``1/sqrt(I)`` below), ``depth_noise`` (metres, along the ray),
-        ``dropout`` (fraction of pixels lost at random), ``min_intensity``
-        (counts) and ``max_aoi`` (degrees).
+        Supplies the noise levels above, ``dropout`` (fraction of pixels lost
+        at random), ``min_intensity`` (counts) and ``max_aoi`` (degrees).
     rng : Generator
         The view's own random stream.
 
@@ -171,15 +233,11 @@ def observe(
     intensity_draw = rng.standard_normal(shape)
     range_draw = rng.standard_normal(shape)
     kept = rng.random(shape) >= preset.dropout
-    signal = instrument.intensity(geometry.distance, geometry.aoi, scattering_model(geometry.aoi, geometry.R0, geometry.n))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        sigma = np.clip(
-            preset.intensity_noise * np.sqrt(preset.noise_reference / signal),
-            preset.intensity_noise,
-            preset.intensity_noise_max,
-        )
-    intensity = signal * (1.0 + sigma * intensity_draw)
-    distance = geometry.distance + preset.depth_noise * range_draw
+    signal = instrument.intensity(geometry.distance, geometry.aoi, scattering(geometry.aoi, geometry.R0, geometry.n))
+    relative = _growing(preset.intensity_noise, preset.intensity_noise_max, preset.noise_reference, signal)
+    intensity = signal + np.hypot(relative * signal, preset.intensity_floor) * intensity_draw
+    depth_sigma = _growing(preset.depth_noise, preset.depth_noise_max, preset.noise_reference, signal)
+    distance = geometry.distance + depth_sigma * range_draw
     valid = (
         (geometry.face >= 0)
         & kept

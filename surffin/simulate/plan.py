@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 
 from surffin.simulate.camera import look_at_pose
-from surffin.simulate.presets import Preset, Specimen
+from surffin.simulate.presets import Preset, SceneLayout, Specimen
 from surffin.simulate.scene import Face, box_faces, keyed_rng, plane_face
 
 __all__ = ["REPEAT_FOLDERS", "Acquisition", "plan_campaign"]
@@ -18,10 +18,12 @@ REPEAT_FOLDERS = {"wall": "calibration/repeat/wall", "reference": "calibration/r
 
 _GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 # World X, Y of the specimens' places on the board (specimen k at
-# (_SPECIMEN_PITCH * (k - (K-1)/2), _SPECIMEN_ROW)) and of the scene's centre.
+# (_SPECIMEN_PITCH * (k - (K-1)/2), _SPECIMEN_ROW)) and of the centre of scene k
+# (from 0) at (_SCENE_PITCH * k, _SCENE_ROW): each scene on a patch of board of its own.
 _SPECIMEN_PITCH = 0.3
 _SPECIMEN_ROW = -0.5
-_SCENE_CENTRE = (0.0, 0.5)
+_SCENE_PITCH = 0.6
+_SCENE_ROW = 0.5
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -38,7 +40,7 @@ class Acquisition:
     faces : tuple of Face
         The scene.
     poses : tuple of (4, 4) ndarray
-        Camera-to-world, metres, in view order; the first is the reference view.
+        Camera-to-world, metres, in view order.
     prefix : str
         View names are ``<prefix><index>`` with ``digits`` digits.
     digits : int
@@ -50,6 +52,9 @@ class Acquisition:
     repeat : bool
         Part of the repeat calibration set (wall or reference panel views):
         written to its folder, but not named in ``campaign.yaml``.
+    reference : int
+        Index of the reference view (whose grid the truth, the roi and the
+        scene's truth labels are on).
     """
 
     name: str
@@ -62,11 +67,17 @@ class Acquisition:
     specimen: Specimen | None = None
     roi_face: str | None = None
     repeat: bool = False
+    reference: int = 0
 
     @property
     def stems(self) -> list[str]:
-        """View file stems, in view order."""
+        """View file stems, in view order (also their name order)."""
         return [f"{self.prefix}{index:0{self.digits}d}" for index in range(len(self.poses))]
+
+    @property
+    def reference_stem(self) -> str:
+        """Stem of the reference view."""
+        return self.stems[self.reference]
 
     @property
     def has_truth(self) -> bool:
@@ -147,7 +158,7 @@ def _orbit(preset: Preset, seed: int, name: str, target, distance: float, tilts,
 def _specimen(preset: Preset, seed: int, index: int) -> Acquisition:
     """Specimen ``index`` alone on the board, at the image centre of every view."""
     specimen = preset.specimens[index]
-    height = preset.specimen_thickness
+    height = preset.thickness(specimen)
     centre = (_SPECIMEN_PITCH * (index - (len(preset.specimens) - 1) / 2.0), _SPECIMEN_ROW)
     label = preset.classes.index(specimen.cls)
     faces = (
@@ -158,27 +169,55 @@ def _specimen(preset: Preset, seed: int, index: int) -> Acquisition:
     poses = _orbit(preset, seed, specimen.name, target, preset.specimen_distance, preset.specimen_tilts, index)
     folder = f"specimens/{specimen.name}"
     return Acquisition(
-        specimen.name, "specimen", folder, faces, poses, specimen=specimen, roi_face=f"{specimen.name}.top"
+        specimen.name,
+        "specimen",
+        folder,
+        faces,
+        poses,
+        specimen=specimen,
+        roi_face=f"{specimen.name}.top",
+        reference=preset.reference_view,
     )
 
 
-def _scene(preset: Preset, seed: int) -> Acquisition:
-    """The first ``len(scene_rotations)`` specimens on one board in rows of two, each turned by its angle."""
-    height = preset.specimen_thickness
+def _scene(preset: Preset, seed: int, index: int, layout: SceneLayout) -> Acquisition:
+    """Scene ``T<index + 1>``: its pieces on the board in rows of two, each turned by its angle.
+
+    The views aim at the scene's centre at the pieces' mean height.
+    """
+    name = f"T{index + 1}"
     pitch = preset.specimen_size + preset.scene_gap
+    middle = (_SCENE_PITCH * index, _SCENE_ROW)
+    rows = (len(layout.pieces) + 1) // 2
     faces = [plane_face("board", preset.board)]
-    shown = preset.specimens[: len(preset.scene_rotations)]
-    for index, (specimen, rotation) in enumerate(zip(shown, preset.scene_rotations, strict=True)):
-        row, column = divmod(index, 2)
-        centre = (_SCENE_CENTRE[0] + pitch * (column - 0.5), _SCENE_CENTRE[1] + pitch * (row - 0.5))
-        label = preset.classes.index(specimen.cls)
+    for place, (piece, rotation) in enumerate(zip(layout.pieces, layout.rotations, strict=True)):
+        if piece.cls not in preset.classes:
+            raise ValueError(f"scene {name}: piece {piece.name} is of class {piece.cls!r}, which no specimen has")
+        row, column = divmod(place, 2)
+        centre = (middle[0] + pitch * (column - 0.5), middle[1] + pitch * (row - (rows - 1) / 2.0))
         faces += box_faces(
-            f"T1.{specimen.name}", centre, preset.specimen_size, height, np.deg2rad(rotation), specimen.material, label
+            f"{name}.{piece.name}",
+            centre,
+            preset.specimen_size,
+            preset.thickness(piece),
+            np.deg2rad(rotation),
+            piece.material,
+            preset.classes.index(piece.cls),
         )
-    target = (*_SCENE_CENTRE, -height)
-    turn = len(preset.specimens)
-    poses = _orbit(preset, seed, "T1", target, preset.scene_distance, preset.scene_tilts, turn)
-    return Acquisition("T1", "scene", "scenes/T1", tuple(faces), poses)
+    target = (*middle, -float(np.mean([preset.thickness(piece) for piece in layout.pieces])))
+    turn = len(preset.specimens) + index
+    poses = _orbit(preset, seed, name, target, layout.distance, layout.tilts, turn)
+    return Acquisition(name, "scene", f"scenes/{name}", tuple(faces), poses, reference=preset.reference_view)
+
+
+def _check_reference_view(preset: Preset) -> None:
+    """Refuse a reference view index that some specimen or scene does not have."""
+    counts = [len(preset.specimen_tilts), *(len(layout.tilts) for layout in preset.scene_layouts)]
+    if not 0 <= preset.reference_view < min(counts):
+        raise ValueError(
+            f"reference_view {preset.reference_view!r} must index a view of every specimen and scene "
+            f"(0 to {min(counts) - 1})"
+        )
 
 
 def plan_campaign(preset: Preset, seed: int) -> list[Acquisition]:
@@ -194,17 +233,27 @@ def plan_campaign(preset: Preset, seed: int) -> list[Acquisition]:
     -------
     list of Acquisition
         The calibration wall, the reference panel, one per specimen (alone on
-        the board, at the image centre) and the scene ``T1`` (the first
+        the board, at the image centre) and the scenes ``T1``, ``T2``, ... of
+        :attr:`Preset.scene_layouts` (by default one, of the first
         ``len(preset.scene_rotations)`` specimens, all of them in the named
-        presets, in rows of two, rotated in-plane by ``preset.scene_rotations``).
-        Specimen and scene views look at the centre of their top faces, with
-        azimuths following the golden angle from a different start per item.
-        Last, when ``preset.repeat_calibration``, the repeat calibration set:
-        the wall and the panel again from slightly different poses, into
+        presets); a scene's pieces lie in rows of two, rotated in-plane. Specimen
+        and scene views look at the centre of their top faces, with azimuths
+        following the golden angle from a different start per item; their
+        reference view is ``preset.reference_view``. Last, when
+        ``preset.repeat_calibration``, the repeat calibration set: the wall and
+        the panel again from slightly different poses, into
         :data:`REPEAT_FOLDERS`.
+
+    Raises
+    ------
+    ValueError
+        ``preset.reference_view`` is not a view of every item, or a scene
+        holds a piece of a class no specimen has.
     """
+    _check_reference_view(preset)
     specimens = [_specimen(preset, seed, index) for index in range(len(preset.specimens))]
-    plan = [_wall(preset, seed), _reference(preset, seed), *specimens, _scene(preset, seed)]
+    scenes = [_scene(preset, seed, index, layout) for index, layout in enumerate(preset.scene_layouts)]
+    plan = [_wall(preset, seed), _reference(preset, seed), *specimens, *scenes]
     if preset.repeat_calibration:
         plan += [_wall(preset, seed, repeat=True), _reference(preset, seed, repeat=True)]
     return plan

@@ -19,15 +19,15 @@ import numpy as np
 from surffin.simulate.camera import PinholeCamera, world_rays
 
 __all__ = [
-    "Texture",
-    "Material",
     "Face",
-    "Scene",
     "Geometry",
-    "keyed_rng",
-    "random_field",
-    "plane_face",
+    "Material",
+    "Scene",
+    "Texture",
     "box_faces",
+    "keyed_rng",
+    "plane_face",
+    "random_field",
     "render",
 ]
 

@@ -20,7 +20,7 @@ from surffin.simulate.plan import Acquisition
 from surffin.simulate.presets import Preset
 from surffin.simulate.scene import Geometry, Scene
 
-__all__ = ["reference_coordinates", "scene_truth_label", "item_truth", "instrument_truth"]
+__all__ = ["instrument_truth", "item_truth", "reference_coordinates", "scene_truth_label"]
 
 # A reference-view ray must meet its surface point within this distance for the
 # point to count as visible in the reference view, metres.
@@ -113,7 +113,7 @@ def item_truth(
         The item's faces, poses and view names.
     preset : Preset
     reference : Geometry
-        Noise-free rendering of the reference (first) view.
+        Noise-free rendering of the reference view (``acquisition.reference``).
     aoi : (view, height, width) ndarray, radians
         Angle of incidence in each view, on that view's own grid.
     u_ref, v_ref : (view, height, width) ndarray, pixels
@@ -155,7 +155,7 @@ def item_truth(
         attrs={
             "item": acquisition.name,
             "kind": acquisition.kind,
-            "reference_view": acquisition.stems[0],
+            "reference_view": acquisition.reference_stem,
             "classes": list(classes),
             "label_margin": preset.label_margin,
         },
