@@ -13,21 +13,19 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import statistics
 import tempfile
 import time
 from pathlib import Path
 
+from surffin import parameters
 from surffin.pipeline import run_calibration, run_item
 
 from _paper import paper_campaign  # benchmarks/_paper.py: this folder is on sys.path when run as a script
 
 #: The workflow's AOI and feature settings (config/config.yaml).
-PARAMS = {
-    "aoi": {"window": 15, "jump": 0.02},
-    "features": {"size": 7, "variability_size": 7, "min_views": 2, "min_spread": math.radians(10.0)},
-}
+CONFIG = parameters.read_config()
+PARAMS = {"aoi": parameters.aoi_parameters(CONFIG), "features": parameters.feature_parameters(CONFIG)}
 
 
 def params_of(item) -> dict:
@@ -49,7 +47,7 @@ def main():
     logging.getLogger("surffin").setLevel(logging.WARNING)
     with paper_campaign(args.campaign) as (camp, _), tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
-        calibration = run_calibration(camp.path, out / "calibration.zarr", params={"jump": 0.02})
+        calibration = run_calibration(camp.path, out / "calibration.zarr", params=parameters.calibration_parameters(CONFIG))
         times = {size: [] for size in args.chunks}
         for round_ in range(args.repeat + 1):
             for size in args.chunks:

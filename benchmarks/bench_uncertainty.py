@@ -3,8 +3,8 @@
 Run by hand: ``python benchmarks/bench_uncertainty.py [--campaign DIR]``. Without
 ``--campaign`` it renders the ``paper`` preset into a temporary folder (truth in
 ``<campaign>-truth``). Each item is processed in memory as the workflow does
-(calibration with the workflow's default wall AOI window, then aoi, reflectance,
-registration, features). Scored pixels: at least the preset's ``label_margin``
+(calibration, then aoi, reflectance, registration, features, all with the
+workflow's parameters). Scored pixels: at least the preset's ``label_margin``
 from the edges of surfaces. Prints, per item and parameter, the share of pixels
 whose true error lies within 1 and 2 reported uncertainties
 (:func:`surffin.uncertainty.coverage`):
@@ -14,8 +14,8 @@ whose true error lies within 1 and 2 reported uncertainties
 2. the smoothed features' uncertainty under three propagations: independent
    errors, the fully correlated bound, and the residual correlation the
    features store carries (0.683 and 0.954 when calibrated);
-3. the scene's accuracy with the classification bounds of ``config/config.yaml``
-   (``classify.max_uncertainty``, ``classify.max_distance``) and without them,
+3. the scene's accuracy with the reject options of ``config/config.yaml``
+   (``classify.min_posterior``, ``classify.outlier_probability``) and without them,
    with the unclassified pixels by reason.
 """
 
@@ -27,8 +27,8 @@ from pathlib import Path
 
 import dask
 import xarray as xr
-import yaml
 
+from surffin import parameters
 from surffin.calibration import calibrate
 from surffin.campaign import read_truth
 from surffin.classify import score, training_set
@@ -39,7 +39,6 @@ from surffin.uncertainty import coverage
 
 from _paper import paper_campaign  # benchmarks/_paper.py: this folder is on sys.path when run as a script
 
-REPO = Path(__file__).resolve().parents[1]
 
 
 def propagated(feats: xr.Dataset, inflation: float) -> xr.Dataset:
@@ -72,13 +71,13 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--campaign", type=Path, help="a rendered paper campaign (truth in <campaign>-truth)")
     args = parser.parse_args()
-    config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    config = parameters.read_config()
     with paper_campaign(args.campaign) as (camp, truth_dir):
         with dask.config.set(scheduler="threads", num_workers=2):
-            cal = config["calibration"]
-            calibration = calibrate(camp, window=cal["aoi_window"], jump=cal["aoi_jump"], min_obs=cal["min_observations"])
+            calibration = calibrate(camp, **parameters.calibration_parameters(config))
+            item_params = {**parameters.aoi_parameters(config), **parameters.feature_parameters(config)}
             features = {
-                name: process_item(ingest_item(camp, name), calibration, roi=item.roi)["features"]
+                name: process_item(ingest_item(camp, name), calibration, roi=item.roi, **item_params)["features"]
                 for name, item in camp.items.items()
             }
         header = f"{'':28s}" + "".join(f"{name + ' 1u':>10s}{name + ' 2u':>10s}{name + ' scale':>10s}" for name in UNCERTAINTY)
@@ -104,10 +103,10 @@ def main():
             truth_label, truth_classes = read_truth(item.truth, width=camp.camera.width, height=camp.camera.height)
             print(f"\nscene {name}: accuracy (unclassified = wrong) and unclassified pixels by reason")
             for label, options in (
-                ("no bounds", {}),
-                (f"max_uncertainty {bounds['max_uncertainty']}", {"max_uncertainty": bounds["max_uncertainty"]}),
-                (f"  + max_distance {bounds['max_distance']}", {"max_uncertainty": bounds["max_uncertainty"],
-                                                                "max_distance": bounds["max_distance"]}),
+                ("no reject", {}),
+                (f"min_posterior {bounds['min_posterior']}", {"min_posterior": bounds["min_posterior"]}),
+                (f"  + outlier_probability {bounds['outlier_probability']}", {
+                    "min_posterior": bounds["min_posterior"], "outlier_probability": bounds["outlier_probability"]}),
             ):
                 labels = labels_stage(features[name], training, **options)
                 accuracy = [score(labels[v], truth_label, truth_classes, training.attrs["classes"])["accuracy"]

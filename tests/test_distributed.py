@@ -16,8 +16,6 @@ from surffin.pipeline import run_calibration, run_ingest, run_stage
 
 #: Chunks over the 40 x 60 crop of the tiny camera: neither divides it.
 CHUNKS = {"y": 16, "x": 24}
-#: The tiny camera needs 8x the paper camera's depth-jump threshold (tests/data/tiny-config.yaml).
-JUMP = 0.16
 
 
 @pytest.fixture(scope="module")
@@ -27,12 +25,12 @@ def campaign(tmp_path_factory):
     surffin.simulate_campaign(root / "raw", preset="tiny", seed=0)
     camp = surffin.read_campaign(root / "raw")
     processed = root / "processed"
-    calibration = run_calibration(camp.path, processed / "calibration.zarr", params={"jump": JUMP})
+    calibration = run_calibration(camp.path, processed / "calibration.zarr")
     for item in ("S1", "T1"):
         store = {stage: processed / stage / f"{item}.zarr" for stage in ("ingest", "aoi", "reflectance", "registered")}
         run_ingest(camp.path, item, store["ingest"], chunks=CHUNKS)
         inputs = {"ingest": store["ingest"]}
-        run_stage("aoi", store["aoi"], stores=inputs, params={"jump": JUMP}, chunks=CHUNKS)
+        run_stage("aoi", store["aoi"], stores=inputs, chunks=CHUNKS)
         inputs["aoi"] = store["aoi"]
         run_stage("reflectance", store["reflectance"], stores={**inputs, "calibration": calibration}, chunks=CHUNKS)
         inputs["reflectance"] = store["reflectance"]

@@ -25,7 +25,7 @@ from surffin.figures import (
     run_figures,
     write_table,
 )
-from surffin.geometry import DEFAULT_JUMP, angle_of_incidence
+from surffin.geometry import angle_of_incidence
 from surffin.pipeline import run_roughness_map
 from surffin.roughness import roughness_relation
 from surffin.store import write_store
@@ -259,7 +259,7 @@ def test_label_map_shows_the_labels(tmp_path):
     # unclassified pixels are drawn (dark), and their count by reason noted
     declined = labels.copy(deep=True)
     declined["label"].values[:3] = -1
-    declined["label"].attrs["unclassified"] = {"missing_feature": 0, "uncertainty_above_bound": 3 * labels.sizes["x"]}
+    declined["label"].attrs["unclassified"] = {"missing_feature": 0, "ambiguous": 3 * labels.sizes["x"]}
     assert not np.array_equal(first, png(plot_labels(declined, ingest, tmp_path / "d.png", scores=SUMMARY["scenes"]["T1"])))
 
 
@@ -342,8 +342,7 @@ def test_run_figures_refuses_unknown_kinds_and_missing_inputs(stores, tmp_path):
 def test_calibrate_keeps_raw_wall_observations_with_their_reflectance(tmp_path):
     surffin.simulate_campaign(tmp_path / "raw", preset="tiny", seed=0)
     camp = surffin.read_campaign(tmp_path / "raw")
-    jump = 8 * DEFAULT_JUMP  # the tiny camera's (tests/data/tiny-config.yaml)
-    ds = calibrate(camp, jump=jump)
+    ds = calibrate(camp)
     wall = camp.calibration.wall
     views = {path.stem: camp.read_view(path) for path in wall}
     assert list(ds["view"].values) == list(views)
@@ -374,7 +373,6 @@ def test_calibrate_keeps_raw_wall_observations_with_their_reflectance(tmp_path):
         stem: angle_of_incidence(
             xr.DataArray(view.xyz[None], dims=("view", "y", "x", "axis"), coords={"view": [stem], **sensor_coords(
                 height=view.xyz.shape[0], width=view.xyz.shape[1])}),
-            jump=jump,
         ).isel(view=0)
         for stem, view in views.items()
     }

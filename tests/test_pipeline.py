@@ -10,10 +10,9 @@ import xarray as xr
 import surffin
 from surffin.pipeline import dask_scheduler, run_calibration, run_ingest, run_item, run_items, run_stage
 
-#: The tiny camera needs 8x the paper camera's depth-jump threshold (tests/data/tiny-config.yaml).
-JUMP = 0.16
 CHUNKS = {"y": 32, "x": 32}
 STORES = ("ingest", "aoi", "reflectance", "registered", "features")
+AOI = {"window": 9}
 FEATURES = {"size": 5, "variability_size": 7, "min_views": 2, "min_spread": math.radians(10)}
 
 
@@ -22,14 +21,14 @@ def campaign(tmp_path_factory):
     root = tmp_path_factory.mktemp("pipeline")
     surffin.simulate_campaign(root / "raw", preset="tiny", seed=0)
     camp = surffin.read_campaign(root / "raw")
-    return camp, run_calibration(camp.path, root / "calibration.zarr", params={"jump": JUMP})
+    return camp, run_calibration(camp.path, root / "calibration.zarr")
 
 
 def stage_by_stage(camp, calibration, item, folder):
     """The chain as the per-stage rules run it, one call per stage."""
     store = {name: folder / name / f"{item}.zarr" for name in STORES}
     run_ingest(camp.path, item, store["ingest"], chunks=CHUNKS)
-    run_stage("aoi", store["aoi"], stores={"ingest": store["ingest"]}, params={"jump": JUMP}, chunks=CHUNKS)
+    run_stage("aoi", store["aoi"], stores={"ingest": store["ingest"]}, params=AOI, chunks=CHUNKS)
     inputs = {"ingest": store["ingest"], "aoi": store["aoi"]}
     run_stage("reflectance", store["reflectance"], stores={**inputs, "calibration": calibration}, chunks=CHUNKS)
     inputs["reflectance"] = store["reflectance"]
@@ -46,7 +45,7 @@ def test_run_item_writes_the_stores_of_the_stages(campaign, tmp_path):
     outputs = {name: tmp_path / "item" / name / "T1.zarr" for name in STORES}
     log = tmp_path / "item.log"
     written = run_item(
-        camp.path, "T1", outputs, calibration=calibration, params={"aoi": {"jump": JUMP}, "features": FEATURES},
+        camp.path, "T1", outputs, calibration=calibration, params={"aoi": AOI, "features": FEATURES},
         chunks=CHUNKS, log_path=log,
     )
     assert written == outputs
@@ -66,7 +65,7 @@ def test_run_items_runs_each_chain_with_its_own_parameters(campaign, tmp_path):
     camp, calibration = campaign
     expected = stage_by_stage(camp, calibration, "S1", tmp_path / "stages")
     items = {name: {store: tmp_path / "batch" / store / f"{name}.zarr" for store in STORES} for name in ("S1", "T1")}
-    params = {"S1": {"aoi": {"jump": JUMP}, "features": FEATURES}, "T1": {"features": {**FEATURES, "size": 3}}}
+    params = {"S1": {"aoi": AOI, "features": FEATURES}, "T1": {"features": {**FEATURES, "size": 3}}}
     log = tmp_path / "batch.log"
     assert run_items(camp.path, items, calibration=calibration, params=params, chunks=CHUNKS, log_path=log) == items
     for name in STORES:

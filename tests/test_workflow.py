@@ -79,7 +79,7 @@ def test_every_store_follows_the_contract(done):
         expected = {
             "ingest": {"xyz", "intensity", "valid"},
             "aoi": {"aoi", "distance"},
-            "reflectance": {"reflectance"},
+            "reflectance": {"reflectance", "reflectance_noise"},
             "registered": {"reflectance", "aoi"},
             "features": {"R0", "n", "variability", "R0_uncertainty", "n_uncertainty"},
         }
@@ -110,13 +110,17 @@ def test_every_store_follows_the_contract(done):
         assert labels[var].attrs["flag_meanings"] == "S1 S2 S3 S4"
         # every unclassified pixel is counted under one reason, before and after the filter
         assert sum(labels[var].attrs["unclassified"].values()) == int((labels[var] == -1).sum())
-    assert labels.attrs["surffin_parameters"]["max_uncertainty"] == 0.5
+    assert labels.attrs["surffin_parameters"]["min_posterior"] == 0.5
+    assert labels["posterior"].dtype == np.float32 and labels["unclassified_reason"].dtype == np.int8
+    assert "noise_variance" in cal and np.isfinite(cal["noise_variance"]).sum() > 5
     summary = json.loads((processed / "summary.json").read_text())
     assert set(summary["items"]) == set(camp.items)
     assert summary["items"]["S1"]["region"] == "roi" and summary["items"]["T1"]["region"] == "image"
     assert summary["items"]["S1"]["n"]["n_pixels"] <= camp.specimens["S1"].roi.shape[0] * camp.specimens["S1"].roi.shape[1]
     accuracy = summary["scenes"]["T1"]["accuracy"]
-    assert 0 <= accuracy["label"]["accuracy"] <= 1 and 0 <= accuracy["label_filtered"]["accuracy"] <= 1
+    # measured 0.809 / 0.854 (tiny preset, seed 0: specimens 16 px wide in the scene, a sixth of it
+    # unclassified as unlike the specimens); tests/test_accuracy.py holds the end-to-end bounds
+    assert accuracy["label"]["accuracy"] > 0.75 and accuracy["label_filtered"]["accuracy"] > 0.8
     relation = json.loads((processed / "roughness" / "relation.json").read_text())
     assert set(relation["specimens"]) == {"S1", "S2", "S3", "S4"}
     assert relation["slope"] < 0  # the tiny preset's plaster: n falls with roughness

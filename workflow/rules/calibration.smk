@@ -16,11 +16,7 @@ rule calibration:
     params:
         campaign=str(CAMPAIGN),
         settings=calibration_settings,
-        stage_params={
-            "window": config["calibration"]["aoi_window"],
-            "jump": config["calibration"]["aoi_jump"],
-            "min_obs": config["calibration"]["min_observations"],
-        },
+        stage_params=calibration_parameters(config),
         code=STAGE_VERSION["calibration"],
     script:
         "../scripts/calibration.py"

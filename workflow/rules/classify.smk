@@ -41,13 +41,7 @@ rule labels:
         mem_mb=1500,
     params:
         stage="labels",
-        stage_params={
-            "k": config["classify"]["k"],
-            "filter_kind": config["classify"]["filter"],
-            "filter_size": config["classify"]["filter_size"],
-            "max_uncertainty": config["classify"]["max_uncertainty"],
-            "max_distance": config["classify"]["max_distance"],
-        },
+        stage_params=label_parameters(config),
         chunks=config["chunks"],
         scheduler=config["scheduler"],
         code=STAGE_VERSION["labels"],

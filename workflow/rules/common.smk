@@ -1,4 +1,3 @@
-import math
 import re
 import zlib
 from pathlib import Path
@@ -12,6 +11,7 @@ import surffin.roughness
 from surffin.calibration import calibration_set
 from surffin.diagnostics import representative_specimens
 from surffin.errors import SurffinError
+from surffin.parameters import aoi_parameters, calibration_parameters, feature_parameters, label_parameters
 
 validate(config, "../schemas/config.schema.yaml")
 
@@ -34,19 +34,19 @@ RESULTS_FIRST = 10
 # and what depends on it.
 STAGE_VERSION = {
     "ingest": 1,
-    "calibration": 2,
-    "aoi": 1,
-    "reflectance": 1,
+    "calibration": 3,
+    "aoi": 2,
+    "reflectance": 2,
     "registration": 1,
-    "features": 2,
-    "training": 2,
-    "labels": 2,
+    "features": 3,
+    "training": 3,
+    "labels": 3,
     "summary": 2,
     "figures": 2,
     "roughness": 1,
     "sensitivity": 1,
     "diagnostics": 1,
-    "comparison": 1,
+    "comparison": 2,
 }
 
 
@@ -126,25 +126,15 @@ def item_roi(wildcards):
 
 
 def aoi_params(wildcards):
-    return {"window": config["aoi"]["window"], "jump": config["aoi"]["jump"]}
+    return aoi_parameters(config)
 
 
 def registration_params(wildcards):
     return {"method": config["registration"]["method"], "roi": roi_of(wildcards.item)}
 
 
-def feature_settings():
-    features = config["features"]
-    return {
-        "size": features["smoothing"],
-        "variability_size": features["variability_window"],
-        "min_views": features["min_views"],
-        "min_spread": math.radians(features["min_aoi_spread_deg"]),
-    }
-
-
 def feature_params(wildcards):
-    return {"roi": roi_of(wildcards.item), **feature_settings()}
+    return {"roi": roi_of(wildcards.item), **feature_parameters(config)}
 
 
 def item_stage_params(wildcards):
@@ -200,12 +190,7 @@ def diagnostics_settings(wildcards):
 
 def diagnostics_item_params(wildcards):
     """The registration, AOI and feature parameters the diagnostics process the specimens with."""
-    return {
-        "method": config["registration"]["method"],
-        "window": config["aoi"]["window"],
-        "jump": config["aoi"]["jump"],
-        **feature_settings(),
-    }
+    return {"method": config["registration"]["method"], **aoi_parameters(config), **feature_parameters(config)}
 
 
 def features_of(names):

@@ -1,0 +1,97 @@
+"""Processing parameters: the workflow's config keys -> the keyword arguments of each stage.
+
+One mapping, read by the workflow's rules and by the benchmarks alike, so that
+both run the same method (a renamed key is changed here only). ``config`` is
+the workflow's configuration (``config/config.yaml``, validated against
+``workflow/schemas/config.schema.yaml``); :func:`read_config` loads that file
+for code that runs without snakemake.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+from pathlib import Path
+
+import yaml
+
+__all__ = [
+    "DEFAULT_CONFIG",
+    "KEYWORDS",
+    "read_config",
+    "calibration_parameters",
+    "aoi_parameters",
+    "feature_parameters",
+    "label_parameters",
+]
+
+#: The repository's configuration file (present in a source checkout).
+DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "config" / "config.yaml"
+
+
+def read_config(path: str | os.PathLike = DEFAULT_CONFIG) -> dict:
+    """The workflow configuration in ``path`` (safe YAML)."""
+    with open(path, encoding="utf-8") as stream:
+        return yaml.safe_load(stream)
+
+
+#: Per stage function: its config section and, per keyword argument, the config key that sets it.
+KEYWORDS = {
+    "calibration": (
+        "calibration",
+        {
+            "window": "aoi_window",
+            "jump": "aoi_jump",
+            "max_window": "aoi_max_window",
+            "min_obs": "min_observations",
+            "angular_smoothing": "angular_smoothing",
+        },
+    ),
+    "aoi": ("aoi", {"window": "window", "jump": "jump", "max_window": "max_window"}),
+    "features": (
+        "features",
+        {
+            "size": "smoothing",
+            "variability_size": "variability_window",
+            "min_views": "min_views",
+            "min_spread": "min_aoi_spread_deg",
+        },
+    ),
+    "labels": (
+        "classify",
+        {
+            "k": "k",
+            "filter_kind": "filter",
+            "filter_size": "filter_size",
+            "min_posterior": "min_posterior",
+            "outlier_probability": "outlier_probability",
+        },
+    ),
+}
+
+
+def _keywords(config: Mapping, stage: str) -> dict:
+    section, keys = KEYWORDS[stage]
+    return {keyword: config[section][key] for keyword, key in keys.items()}
+
+
+def calibration_parameters(config: Mapping) -> dict:
+    """Keyword arguments of :func:`surffin.calibration.calibrate`."""
+    return _keywords(config, "calibration")
+
+
+def aoi_parameters(config: Mapping) -> dict:
+    """Keyword arguments of :func:`surffin.stages.aoi_stage`."""
+    return _keywords(config, "aoi")
+
+
+def feature_parameters(config: Mapping) -> dict:
+    """Keyword arguments of :func:`surffin.stages.features_stage` (without the item's roi)."""
+    keywords = _keywords(config, "features")
+    return keywords | {"min_spread": math.radians(keywords["min_spread"])}
+
+
+def label_parameters(config: Mapping) -> dict:
+    """Keyword arguments of :func:`surffin.stages.labels_stage`."""
+    return _keywords(config, "labels")

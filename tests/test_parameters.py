@@ -1,0 +1,47 @@
+"""The one config -> keyword mapping (surffin.parameters) against the functions and the schema."""
+
+import inspect
+import math
+
+import pytest
+import yaml
+
+from surffin import parameters
+from surffin.calibration import calibrate
+from surffin.stages import aoi_stage, features_stage, labels_stage
+
+SCHEMA = parameters.DEFAULT_CONFIG.parent.parent / "workflow" / "schemas" / "config.schema.yaml"
+
+
+@pytest.mark.parametrize(
+    ("mapping", "function"),
+    [
+        (parameters.calibration_parameters, calibrate),
+        (parameters.aoi_parameters, aoi_stage),
+        (parameters.feature_parameters, features_stage),
+        (parameters.label_parameters, labels_stage),
+    ],
+)
+def test_every_keyword_is_a_parameter_of_its_function(mapping, function):
+    keywords = mapping(parameters.read_config())
+    accepted = inspect.signature(function).parameters
+    assert keywords and set(keywords) <= set(accepted), set(keywords) - set(accepted)
+
+
+def test_every_mapped_key_is_in_the_config_and_the_schema():
+    config = parameters.read_config()
+    schema = yaml.safe_load(SCHEMA.read_text())["properties"]
+    for section, keys in parameters.KEYWORDS.values():
+        for key in keys.values():
+            assert key in config[section], (section, key)
+            assert key in schema[section]["properties"], (section, key)
+
+
+def test_values_come_from_the_config_with_their_units():
+    config = parameters.read_config()
+    config["features"]["min_aoi_spread_deg"] = 30.0
+    config["aoi"]["max_window"] = 60
+    config["calibration"]["aoi_window"] = 9
+    assert parameters.feature_parameters(config)["min_spread"] == pytest.approx(math.pi / 6)
+    assert parameters.aoi_parameters(config)["max_window"] == 60
+    assert parameters.calibration_parameters(config)["window"] == 9
