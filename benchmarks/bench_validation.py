@@ -1,0 +1,150 @@
+"""Accuracy on the validation campaigns, against their truth and against a true-geometry ceiling.
+
+Run by hand: ``python benchmarks/bench_validation.py [--campaigns NAME ...] [--seeds 0 1 2]
+[--workdir DIR] [--config config/config.yaml] [--set SECTION.KEY=VALUE ...]``.
+
+Each validation campaign (:data:`surffin.simulate.validation.VALIDATION`; ``paper``
+and ``tiny`` too) is rendered at each seed into ``--workdir`` (kept, and reused by
+later runs) and evaluated in this process with the workflow's parameters
+(:func:`surffin.evaluation.evaluate_campaign`). Printed per campaign and seed, then
+the mean and the range over the seeds:
+
+- ``cal %``: median relative error of the fitted ``k f(d, theta)`` over the crop;
+- ``R0 %``, ``n %``: median relative error of the smoothed features on the specimen
+  interiors of every item; ``ceil R0``, ``ceil n``: the same for a fit of the same
+  data with the true AOI and instrument function (what the data allow);
+- ``missing``: the largest share of an item's interior without features, %;
+- ``label``, ``filtered``: the worst scene's accuracy (%) before and after the label
+  filter, unclassified pixels counting as wrong; ``unclass``: the largest share of a
+  scene's scored pixels left unclassified, %; ``ceiling``: the worst scene's accuracy
+  of 1-NN on the ceiling's features, after the filter;
+- ``board rej``: the smallest share of a scene's board pixels left unclassified, %.
+
+Then the risk-coverage table: the scenes' scored pixels ranked by the class model's
+posterior of their k-NN class, and the error rate (%) among the classified ones when
+only the most confident share is classified (100 % = no reject option); and the
+posterior's calibration: per posterior bin, the error the posterior predicts (mean
+of 1 - posterior) beside the error observed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import dask
+import numpy as np
+import yaml
+
+import surffin
+from surffin import parameters
+from surffin.evaluation import evaluate_campaign, risk_coverage
+
+ROWS = ("cal %", "R0 %", "n %", "ceil R0", "ceil n", "missing", "label", "filtered", "unclass", "ceiling", "board rej")
+COVERAGES = (1.0, 0.999, 0.995, 0.99, 0.98, 0.95)
+#: Posterior bins of the calibration check: does a posterior p err 1 - p of the time?
+CALIBRATION_BINS = (0.0, 0.5, 0.9, 0.99, 0.999, 1.000001)
+
+
+def campaigns() -> dict:
+    """Name -> (preset, fmt, units, poses) of every campaign the benchmark knows."""
+    from surffin.simulate import PRESETS
+    from surffin.simulate.validation import VALIDATION
+
+    known = {name: (preset, "npz", "m", True) for name, preset in PRESETS.items()}
+    for name, validation in VALIDATION.items():
+        known[name] = (validation.preset, validation.fmt, validation.units, validation.poses)
+    return known
+
+
+def render(name: str, seed: int, workdir: Path) -> Path:
+    """The campaign ``name`` at ``seed`` under ``workdir``, rendered unless already there."""
+    directory = workdir / f"{name}-s{seed}"
+    if not (directory / "campaign.yaml").exists():
+        preset, fmt, units, poses = campaigns()[name]
+        start = time.perf_counter()
+        surffin.simulate_campaign(directory, preset, seed, fmt=fmt, units=units, poses=poses)
+        print(f"  rendered {directory.name} in {time.perf_counter() - start:.0f} s", flush=True)
+    return directory
+
+
+def row(result: dict) -> dict:
+    """One line of the table from :func:`~surffin.evaluation.evaluate_campaign`'s result."""
+    scenes, features = result["scenes"].values(), result["features"]
+    return {
+        "cal %": 100 * result["calibration_error"],
+        "R0 %": 100 * features["R0"],
+        "n %": 100 * features["n"],
+        "ceil R0": 100 * features["ceiling_R0"],
+        "ceil n": 100 * features["ceiling_n"],
+        "missing": 100 * max(item["missing"] for item in result["items"].values()),
+        "label": 100 * min(scene["label"] for scene in scenes),
+        "filtered": 100 * min(scene["label_filtered"] for scene in scenes),
+        "unclass": 100 * max(scene["unclassified"] for scene in scenes),
+        "ceiling": 100 * min(scene["ceiling"] for scene in scenes),
+        "board rej": 100 * min(scene["board_rejected"] for scene in scenes),
+    }
+
+
+def line(label: str, values: dict) -> str:
+    return f"{label:26s}" + "".join(f"{values[key]:10.2f}" for key in ROWS)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--campaigns", nargs="+", default=None, help="default: every validation campaign")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--workdir", type=Path, default=Path("benchmarks/results/validation"))
+    parser.add_argument("--config", type=Path, default=parameters.DEFAULT_CONFIG)
+    parser.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE", help="override config keys")
+    args = parser.parse_args()
+    config = parameters.read_config(args.config)
+    for setting in args.set:
+        key, value = setting.split("=", 1)
+        section, _, leaf = key.partition(".")
+        config[section][leaf] = yaml.safe_load(value)
+    from surffin.simulate.validation import VALIDATION
+
+    names = args.campaigns or list(VALIDATION)
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    print(f"{'campaign, seed':26s}" + "".join(f"{key:>10s}" for key in ROWS))
+    results = {}
+    with dask.config.set(scheduler="threads", num_workers=2):
+        for name in names:
+            results[name] = []
+            for seed in args.seeds:
+                start = time.perf_counter()
+                result = evaluate_campaign(render(name, seed, args.workdir), config)
+                results[name].append(result)
+                reasons = {scene: value["reasons"] for scene, value in result["scenes"].items()}
+                label = f"{name} s{seed} ({time.perf_counter() - start:.0f} s)"
+                print(line(label, row(result)), reasons, flush=True)
+    print("\nmean over seeds, then min and max")
+    for name, runs in results.items():
+        rows = [row(result) for result in runs]
+        print(line(name, {key: float(np.mean([r[key] for r in rows])) for key in ROWS}))
+        print(line("  min", {key: min(r[key] for r in rows) for key in ROWS}))
+        print(line("  max", {key: max(r[key] for r in rows) for key in ROWS}))
+    print("\nrisk-coverage: error % among the classified scene pixels, by share classified (most confident first)")
+    print(f"{'campaign':26s}" + "".join(f"{100 * c:>9.1f}%" for c in COVERAGES))
+    for name, runs in results.items():
+        posterior = np.concatenate([result["posterior"] for result in runs])
+        correct = np.concatenate([result["correct"] for result in runs])
+        curve = risk_coverage(posterior, correct, COVERAGES)
+        print(f"{name:26s}" + "".join(f"{100 * error:10.3f}" for error in curve))
+    print("\nposterior calibration: per posterior bin, pixels, predicted error % (mean 1 - posterior), observed error %")
+    for name, runs in results.items():
+        posterior = np.concatenate([result["posterior"] for result in runs])
+        correct = np.concatenate([result["correct"] for result in runs])
+        cells = []
+        for low, high in zip(CALIBRATION_BINS[:-1], CALIBRATION_BINS[1:]):
+            inside = (posterior >= low) & (posterior < high)
+            if inside.any():
+                predicted, observed = 100 * np.mean(1 - posterior[inside]), 100 * np.mean(~correct[inside])
+                cells.append(f"[{low:g}, {high:g}): {inside.sum()} px {predicted:.2f} / {observed:.2f}")
+        print(f"{name:26s}" + "; ".join(cells))
+
+
+if __name__ == "__main__":
+    main()
