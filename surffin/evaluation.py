@@ -86,7 +86,8 @@ def _ceiling_features(item, ingest, chain, instrument, truth, feature_params) ->
     refl = reflectance(ingest["intensity"], chain["aoi"]["distance"], aoi, instrument["coef"], instrument.attrs["scale_k"])
     refl = refl.where(ingest["valid"]).astype(np.float32)
     registered = register(xr.Dataset({"reflectance": refl, "aoi": aoi}).compute(), chain["registered"][["map_x", "map_y"]])
-    own = xr.Dataset({"reflectance": refl})
+    # the same variability feature as the method's: its noise model's relative noise, where it has one
+    own = xr.Dataset({"reflectance": refl}).merge(chain["reflectance"].drop_vars("reflectance"))
     return features_stage(registered, own, chain["aoi"].assign(aoi=aoi), roi=item.roi, **feature_params).compute()
 
 
