@@ -735,7 +735,8 @@ def variability(
     out = local_std(corrected, size, ddof=ddof, min_count=min_count, noise_variance=variance)
     out.attrs.update(
         units="1",
-        long_name=f"spatial reflectance variability: local standard deviation of R / cos(AOI), {size}x{size} pixels",
+        long_name=f"spatial reflectance variability: local standard deviation of R / cos(AOI), {size}x{size} pixels"
+        + (", camera noise taken out" if noise else ""),
     )
     return out
 
