@@ -16,6 +16,7 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 import xarray as xr
 
 import surffin
@@ -88,6 +89,7 @@ def assert_identical_stores(stores: list[Path], processed: Path, reference: Path
             xr.testing.assert_identical(actual[name].load(), expected[name].load())
 
 
+@pytest.mark.slow  # full snakemake runs, one killed
 def test_killed_run_leaves_complete_stores_and_completes_identically(tmp_path):
     campaign = tmp_path / "raw"
     surffin.simulate_campaign(campaign, preset="tiny", seed=0)

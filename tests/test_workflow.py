@@ -68,6 +68,7 @@ def fresh(tmp_path):
     return complete_run(tmp_path)
 
 
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_every_store_follows_the_contract(done):
     camp = surffin.read_campaign(done / "raw")
     processed = done / "processed"
@@ -134,10 +135,12 @@ def test_every_store_follows_the_contract(done):
     assert rough.attrs["surffin_stage"] == "roughness"
 
 
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_nothing_left_after_a_complete_run(done):
     assert planned_jobs(done) == {}
 
 
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_smoothing_change_reruns_features_and_below_only(done):
     jobs = planned_jobs(done, overrides={"features": {"smoothing": 5}})
     figures = {"item_figures": 5, "classification_figures": 1, "scene_figures": 1}
@@ -145,6 +148,7 @@ def test_smoothing_change_reruns_features_and_below_only(done):
                     "calibration_diagnostics": 1, "paper_comparison": 1}
 
 
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_aoi_window_change_reruns_from_aoi_down(done):
     jobs = planned_jobs(done, overrides={"aoi": {"window": 11, "jump": 0.16}})
     downstream = {"aoi", "reflectance", "registration", "features", "training", "labels", "summary", "all"}
@@ -153,6 +157,7 @@ def test_aoi_window_change_reruns_from_aoi_down(done):
     assert jobs["aoi"] == 5
 
 
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_code_version_bump_reruns_that_stage(done, tmp_path):
     copy = tmp_path / "repo"
     copy.mkdir()
@@ -194,12 +199,14 @@ def specimen_added(raw):
         shutil.rmtree(raw / "specimens" / "S5")
 
 
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_replacing_one_view_reruns_its_chain_only(fresh):
     with view_replaced(fresh / "raw", "S2"):
         jobs = planned_jobs(fresh)
     assert jobs == {**{stage: 1 for stage in ITEM_CHAIN}, **DOWNSTREAM}
 
 
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_adding_a_specimen_runs_its_chain(fresh):
     with specimen_added(fresh / "raw"):
         jobs = planned_jobs(fresh)
@@ -247,6 +254,7 @@ def test_workflow_files_are_formatted():
 
 
 @pytest.mark.parametrize("config", [(), ("jobs=item", "item_batches=2")], ids=["stage jobs", "batch jobs"])
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_lint_is_clean(done, config):
     run = snakemake(done, "--lint", config=config)
     assert run.returncode == 0, run.stdout + run.stderr
@@ -303,12 +311,14 @@ def batch_jobs(done, tmp_path_factory):
     return chain_jobs(done, tmp_path_factory.mktemp("batches"), ["jobs=item", "item_batches=2"])
 
 
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_item_jobs_write_the_stores_of_the_stage_jobs(done, item_jobs):
     workdir, _, _ = item_jobs
     assert_stores_of_the_stage_jobs(workdir, done, sorted((workdir / "logs" / "item").glob("*.log")))
     assert len(list((workdir / "logs" / "item").glob("*.log"))) == 5
 
 
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_batch_jobs_write_the_stores_of_the_stage_jobs(done, batch_jobs):
     workdir, _, _ = batch_jobs
     batches = sorted((workdir / "logs" / "item_batch").glob("*.log"))
@@ -318,6 +328,7 @@ def test_batch_jobs_write_the_stores_of_the_stage_jobs(done, batch_jobs):
     assert_stores_of_the_stage_jobs(workdir, done, [*batches, workdir / "logs" / "item" / "T1.log"])
 
 
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_item_jobs_rerun_whole_chains(item_jobs):
     workdir, targets, config = item_jobs
     assert planned_jobs(workdir, *targets, config=config) == {}
@@ -327,6 +338,7 @@ def test_item_jobs_rerun_whole_chains(item_jobs):
         assert planned_jobs(workdir, *targets, config=config) == {"item": 1}
 
 
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_batch_jobs_rerun_the_batch_of_a_changed_specimen(batch_jobs):
     workdir, targets, config = batch_jobs
     assert planned_jobs(workdir, *targets, config=config) == {}
@@ -342,11 +354,13 @@ def test_batch_jobs_rerun_the_batch_of_a_changed_specimen(batch_jobs):
     assert regrouped == {"item_batch_0": 1, "item_batch_2": 1}
 
 
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_switching_to_item_jobs_reruns_every_chain_once(done):
     jobs = planned_jobs(done, config=["jobs=item"])
     assert jobs["item"] == 5 and "features" not in jobs and "calibration" not in jobs
 
 
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_item_figures_of_scenes_only_or_none(item_jobs):
     workdir, _, config = item_jobs
     assert planned_jobs(workdir, config=[*config, "item_figures=scenes"])["item_figures"] == 1
