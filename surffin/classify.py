@@ -46,6 +46,7 @@ __all__ = [
     "FEATURES",
     "UNCLASSIFIED",
     "UNCLASSIFIED_REASONS",
+    "NOISE_CORRECTED",
     "unclassified_counts",
     "training_set",
     "combine_training",
@@ -60,6 +61,11 @@ __all__ = [
 FEATURES = ("R0", "n", "variability")
 #: Label of a pixel with no class (a feature is missing, too uncertain, or unlike every class).
 UNCLASSIFIED = -1
+#: Attr of feature stores and training sets: 1 when the variability had the camera noise taken
+#: out (:func:`surffin.features.variability`), 0 (or absent: stores made before) when not.
+#: Sets that differ are never pooled nor compared.
+NOISE_CORRECTED = "variability_noise_corrected"
+
 #: Why :func:`classify` leaves a pixel unclassified, in the order the checks apply.
 UNCLASSIFIED_REASONS = ("missing_feature", "far_from_training", "ambiguous")
 _UNCLASSIFIED_NAME = "(unclassified)"
@@ -103,6 +109,17 @@ def _standardised(samples: xr.Dataset) -> xr.Dataset:
         "standardisation": "z = (features - feature_mean) / feature_std",
     }
     return out
+
+
+def _variability_kind(sets: Mapping[str, xr.Dataset], what: str) -> int:
+    """The common :data:`NOISE_CORRECTED` of feature stores or training sets, or an error naming them."""
+    kinds = {name: int(ds.attrs.get(NOISE_CORRECTED, 0)) for name, ds in sets.items()}
+    if len(set(kinds.values())) > 1:
+        raise SurffinError(
+            f"{what} mix variability features with and without the camera noise taken out "
+            f"({NOISE_CORRECTED}: {kinds}); reprocess the older ones with this version of surffin"
+        )
+    return next(iter(kinds.values()))
 
 
 def _evenly(index: np.ndarray, count: int | None) -> np.ndarray:
@@ -202,7 +219,8 @@ def training_set(
         keep = _evenly(np.flatnonzero(finite), None if cap is None else -(-cap // items_of_class[class_name]))
         y, x = (coord.ravel()[keep] for coord in np.meshgrid(part["y"].values, part["x"].values, indexing="ij"))
         parts.append(_samples(values[keep], str(name), str(class_name), y, x))
-    return _pooled(parts, cap)
+    kind = _variability_kind({name: ds for name, (ds, _, _) in items.items()}, "the training items")
+    return _pooled(parts, cap).assign_attrs({NOISE_CORRECTED: kind})
 
 
 def combine_training(*training: xr.Dataset, max_per_class: int | None = None) -> xr.Dataset:
@@ -222,8 +240,9 @@ def combine_training(*training: xr.Dataset, max_per_class: int | None = None) ->
     """
     if not training:
         raise ValueError("combine_training needs at least one training set")
+    kind = _variability_kind({f"training set {i + 1}": t for i, t in enumerate(training)}, "the training sets")
     parts = [t.drop_vars(["feature_mean", "feature_std"], errors="ignore").load() for t in training]
-    return _pooled(parts, _check_cap(max_per_class))
+    return _pooled(parts, _check_cap(max_per_class)).assign_attrs({NOISE_CORRECTED: kind})
 
 
 def _check_k(k, n_samples: int) -> int:
@@ -370,6 +389,7 @@ def classify(
         the reason in :data:`UNCLASSIFIED_REASONS` (CF flags). Computed
         eagerly: all pixels are predicted at once.
     """
+    _variability_kind({"the features": features, "the training set": training}, "the features and the training set")
     classes = list(training.attrs["classes"])
     min_posterior = _check_probability("min_posterior", min_posterior)
     outlier_probability = _check_probability("outlier_probability", outlier_probability)

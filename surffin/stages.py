@@ -13,7 +13,7 @@ import xarray as xr
 
 from surffin.calibration import reflectance
 from surffin.campaign import Roi
-from surffin.classify import UNCLASSIFIED, classify, filter_labels, unclassified_counts
+from surffin.classify import NOISE_CORRECTED, UNCLASSIFIED, classify, filter_labels, unclassified_counts
 from surffin.features import (
     DEFAULT_SIZE,
     features,
@@ -144,7 +144,12 @@ def features_stage(
     ds["variability_view"] = source.assign_attrs(
         units="1", long_name="view the variability comes from: position in variability_views, -1 none"
     )
-    ds.attrs = {**ds.attrs, **registered.attrs, "variability_views": [str(v) for v in order]}
+    ds.attrs = {
+        **ds.attrs,
+        **registered.attrs,
+        "variability_views": [str(v) for v in order],
+        NOISE_CORRECTED: int(noise is not None),
+    }
     return ds
 
 

@@ -15,6 +15,7 @@ from sklearn.neighbors import KNeighborsClassifier
 from surffin.campaign import Roi
 from surffin.classify import (
     FEATURES,
+    NOISE_CORRECTED,
     UNCLASSIFIED_REASONS,
     class_fractions,
     class_model,
@@ -54,6 +55,26 @@ def specimens(seed=0):
         f"spec{k}": (feature_image(CENTRES[name], seed=seed + k), name, None)
         for k, name in enumerate(sorted(CENTRES, reverse=True))
     }
+
+
+def test_variability_with_and_without_the_noise_taken_out_never_mix():
+    items = specimens()
+    for ds, _, _ in items.values():
+        ds.attrs[NOISE_CORRECTED] = 1
+    corrected = training_set(items)
+    assert corrected.attrs[NOISE_CORRECTED] == 1
+    older = training_set(specimens(seed=5))  # stores made before the noise model: no attr
+    assert older.attrs[NOISE_CORRECTED] == 0
+    scene = feature_image(CENTRES["S1"], seed=9)
+    with pytest.raises(SurffinError, match=NOISE_CORRECTED):
+        classify(scene, corrected)
+    assert (classify(scene.assign_attrs({NOISE_CORRECTED: 1}), corrected)["label"] == 0).all()
+    with pytest.raises(SurffinError, match="training sets mix"):
+        combine_training(corrected, older)
+    mixed = specimens()
+    mixed["spec0"][0].attrs[NOISE_CORRECTED] = 1
+    with pytest.raises(SurffinError, match="spec0"):
+        training_set(mixed)
 
 
 def test_training_set_honours_sensor_rois_and_drops_nan():

@@ -101,9 +101,11 @@ def test_every_store_follows_the_contract(done):
             assert (uncertainty[np.isfinite(uncertainty)] >= 0).all()
             assert np.isfinite(uncertainty).mean() > 0.5
         assert "uncertainty_propagation" in features.attrs
+        assert features.attrs["variability_noise_corrected"] == 1
     training = xr.open_zarr(processed / "training.zarr")
     assert list(training["feature"].values) == ["R0", "n", "variability"]
     assert set(training["class"].values) == {"S1", "S2", "S3", "S4"}
+    assert training.attrs["variability_noise_corrected"] == 1
     labels = xr.open_zarr(processed / "labels" / "T1.zarr")
     for var in ("label", "label_filtered"):
         assert labels[var].dtype == np.int16
