@@ -65,6 +65,7 @@ from collections.abc import Callable, Collection, Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
+import cv2
 import numpy as np
 import xarray as xr
 
@@ -517,8 +518,6 @@ def _fit_block(
 
 def _smooth_angular(coef: np.ndarray, sigma: float) -> np.ndarray:
     """(C, D) (2, H, W) of the fitted pixels, Gaussian-smoothed over the fitted pixels (normalised convolution)."""
-    import cv2
-
     fitted = np.isfinite(coef[2]).astype(np.float64)
     mass = cv2.GaussianBlur(fitted, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
     out = np.full((2, *fitted.shape), np.nan)

@@ -68,6 +68,8 @@ NOISE_CORRECTED = "variability_noise_corrected"
 
 #: Why :func:`classify` leaves a pixel unclassified, in the order the checks apply.
 UNCLASSIFIED_REASONS = ("missing_feature", "far_from_training", "ambiguous")
+# Code of each reason in ``unclassified_reason`` (0: classified).
+_REASON_CODE = {name: code for code, name in enumerate(UNCLASSIFIED_REASONS, start=1)}
 _UNCLASSIFIED_NAME = "(unclassified)"
 _FILTERS = ("median", "majority")
 
@@ -405,7 +407,7 @@ def classify(
     available = np.isfinite(values)
     labels = np.full(values.shape[0], UNCLASSIFIED, dtype=np.int16)
     posterior = np.full(values.shape[0], np.nan, dtype=np.float32)
-    reason = np.where(available.sum(axis=1) < 2, 1, 0).astype(np.int8)
+    reason = np.where(available.sum(axis=1) < 2, _REASON_CODE["missing_feature"], 0).astype(np.int8)
     patterns, inverse = np.unique(available, axis=0, return_inverse=True)
     for pattern, rows in zip(patterns, (np.flatnonzero(inverse.ravel() == i) for i in range(len(patterns)))):
         if pattern.sum() < 2:
@@ -426,11 +428,11 @@ def classify(
         keep = np.ones(rows.size, dtype=bool)
         if outlier_probability is not None:
             far = distance.min(axis=1) > _chi2_quantile(1.0 - outlier_probability, columns.size)
-            reason[rows[far]] = 1 + UNCLASSIFIED_REASONS.index("far_from_training")
+            reason[rows[far]] = _REASON_CODE["far_from_training"]
             keep &= ~far
         if min_posterior is not None:
             between = keep & (chosen < min_posterior)
-            reason[rows[between]] = 1 + UNCLASSIFIED_REASONS.index("ambiguous")
+            reason[rows[between]] = _REASON_CODE["ambiguous"]
             keep &= ~between
         posterior[rows] = chosen
         labels[rows[keep]] = predicted[keep]
@@ -467,7 +469,7 @@ def unclassified_counts(reason, where=None) -> dict[str, int]:
     if where is not None:
         reason = reason[np.asarray(where)]
     counts = np.bincount(reason.ravel(), minlength=len(UNCLASSIFIED_REASONS) + 1)
-    return {name: int(counts[index + 1]) for index, name in enumerate(UNCLASSIFIED_REASONS)}
+    return {name: int(counts[code]) for name, code in _REASON_CODE.items()}
 
 
 def _neighbours(samples: np.ndarray, target: np.ndarray, k: int, n_jobs: int | None):

@@ -147,7 +147,7 @@ def evaluate_campaign(
     calibration = calibrate(camp, **parameters.calibration_parameters(config))
     instrument = xr.open_zarr(truth_dir / "instrument.zarr").compute()
     feature_params = parameters.feature_parameters(config)
-    features, ceiling, items = {}, {}, {}
+    features, ceiling, items, scene_truths = {}, {}, {}, {}
     pooled: dict[str, list] = {"R0": [], "n": [], "ceiling_R0": [], "ceiling_n": []}
     for name, item in camp.items.items():
         ingest = ingest_item(camp, name).compute()
@@ -160,6 +160,8 @@ def evaluate_campaign(
             **feature_params,
         )
         item_truth = xr.open_zarr(truth_dir / f"{name}.zarr").compute()
+        if name in camp.scenes:
+            scene_truths[name] = item_truth
         features[name] = chain["features"]
         ceiling[name] = _ceiling_features(item, ingest, chain, instrument, item_truth, feature_params)
         ours, best = relative_errors(features[name], item_truth), relative_errors(ceiling[name], item_truth)
@@ -188,13 +190,12 @@ def evaluate_campaign(
         has = np.isfinite(free["posterior"].values) & scored
         posterior.append(free["posterior"].values[has])
         correct.append(free["label"].values[has] == truth_index[has])
-        scene_truth = xr.open_zarr(truth_dir / f"{name}.zarr").compute()
         scenes[name] = {
             **{var: score(labels[var], truth_label, truth_classes, classes)["accuracy"] for var in ("label", "label_filtered")},
             "unclassified": float(((labels["label"].values < 0) & scored).sum() / max(int(scored.sum()), 1)),
             "reasons": labels["label"].attrs["unclassified"],
             "ceiling": score(best["label_filtered"], truth_label, truth_classes, classes)["accuracy"],
-            "board_rejected": _board_rejection(labels["label"], scene_truth, features[name]),
+            "board_rejected": _board_rejection(labels["label"], scene_truths[name], features[name]),
         }
     return {
         "calibration_error": calibration_error(calibration, instrument, camp.crop),

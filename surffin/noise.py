@@ -66,7 +66,8 @@ class NoiseStatistics:
         ok = np.asarray(valid, dtype=bool) & np.isfinite(intensity) & np.isfinite(flat) & (intensity > 0) & (flat > 0)
         full = _box_mean(ok.astype(np.float64)) > 1.0 - 1e-9
         level = _box_mean(np.where(ok, intensity, 0.0))[full]
-        squared = (np.where(ok, flat, 0.0)[full] / _box_mean(np.where(ok, flat, 0.0))[full] - 1.0) ** 2 * _BOX_FACTOR
+        flat = np.where(ok, flat, 0.0)
+        squared = (flat[full] / _box_mean(flat)[full] - 1.0) ** 2 * _BOX_FACTOR
         index = np.searchsorted(NOISE_EDGES, level, side="right") - 1
         inside = (index >= 0) & (index < self.count.size)
         self.count += np.bincount(index[inside], minlength=self.count.size)
