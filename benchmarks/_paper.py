@@ -11,7 +11,7 @@ import surffin
 
 
 @contextlib.contextmanager
-def paper_campaign(path: Path | None) -> Iterator[tuple[surffin.campaign.Campaign, Path]]:
+def paper_campaign(path: Path | None) -> Iterator[tuple[surffin.io.campaign.Campaign, Path]]:
     """The campaign at ``path``, or the ``paper`` preset (seed 0) rendered into a temporary folder.
 
     Yields the validated campaign and its truth folder (``<campaign>-truth``); a

@@ -1,4 +1,4 @@
-"""Speed and accuracy of the AOI kernel (surffin.geometry) on synthetic 480x640 frames.
+"""Speed and accuracy of the AOI kernel (surffin.method.geometry) on synthetic 480x640 frames.
 
 Run by hand: ``python benchmarks/bench_aoi.py [--repeat N] [--subset N]``.
 
@@ -39,7 +39,7 @@ import timeit
 import numpy as np
 from scipy.spatial import cKDTree
 
-from surffin.geometry import _angle_of_incidence
+from surffin.method.geometry import _angle_of_incidence
 
 HEIGHT, WIDTH = 480, 640
 FX, FY = 565.0, 579.0

@@ -1,4 +1,4 @@
-"""Speed and accuracy of the radiometric calibration (surffin.calibration) on the paper campaign.
+"""Speed and accuracy of the radiometric calibration (surffin.method.calibration) on the paper campaign.
 
 Run by hand: ``python benchmarks/bench_calibration.py [--campaign DIR] [--views N] [--repeat N]``.
 
@@ -7,7 +7,7 @@ The campaign: ``--campaign`` (a rendered ``paper`` preset with its truth beside 
 rendered by ``surffin.simulate_campaign`` into a temporary directory (~1 min).
 
 Table 1, time of a calibration fit of ``--views`` wall views over the full 640x480 sensor,
-per stage: view reading, AOI (``surffin.geometry``), accumulation of the sufficient
+per stage: view reading, AOI (``surffin.method.geometry``), accumulation of the sufficient
 statistics, and the fit; the per-view stages are medians over views and repeats times the
 number of views, the fit a median over repeats. Then ``calibrate`` end to end (all wall
 views but the held-out one, the reference panel, provenance checksums). As a reference in the
@@ -34,7 +34,7 @@ import xarray as xr
 from scipy.optimize import least_squares
 
 import surffin
-from surffin.calibration import (
+from surffin.method.calibration import (
     TERMS,
     WallStatistics,
     calibrate,
@@ -43,7 +43,7 @@ from surffin.calibration import (
     instrument_function,
     reflectance,
 )
-from surffin.geometry import DEFAULT_WINDOW, _angle_of_incidence
+from surffin.method.geometry import DEFAULT_WINDOW, _angle_of_incidence
 
 DEFAULT_CAMPAIGN = Path("/tmp/clone/data/raw")
 PAPER_R2 = 0.98
@@ -171,7 +171,7 @@ def main() -> None:
     print(f"Table 1: calibration fit of {n_views} wall views, {n_pixels} pixels, medians of {args.repeat} runs\n")
     row("stage", "per view ms", "total s")
     row("read view files", f"{1e3 * t_read:.1f}", f"{n_views * t_read:.2f}")
-    row("AOI and distance (surffin.geometry)", f"{1e3 * t_aoi:.1f}", f"{n_views * t_aoi:.2f}")
+    row("AOI and distance (surffin.method.geometry)", f"{1e3 * t_aoi:.1f}", f"{n_views * t_aoi:.2f}")
     row("accumulate sufficient statistics", f"{1e3 * t_add:.1f}", f"{n_views * t_add:.2f}")
     row("fit (all pixels)", "", f"{t_fit:.2f}")
     total = n_views * (t_read + t_aoi + t_add) + t_fit

@@ -20,7 +20,7 @@ with ``snakemake --cores 2`` and the repository's default configuration.
   ``benchmark:`` files under the logs folder), median and maximum per rule.
 - **where the wall time goes**: the budget is ``cores x wall`` core-seconds. Each job holds
   ``threads`` cores for ``s`` seconds (benchmark TSV). Of that, the *stage time* is what the
-  stage itself logged as its work (``<stage> done in X s`` of :func:`surffin.pipeline.run_stage`
+  stage itself logged as its work (``<stage> done in X s`` of :func:`surffin.pipeline.run.run_stage`
   and ``run_ingest``, ``item <name> done in X s`` of ``run_item``: opening inputs, computing,
   writing the stores); the rest of ``s`` is *job start-up*: the new Python process, snakemake's
   script preamble, imports, and exit. Rules that do not log a total (calibration, training,
@@ -30,7 +30,7 @@ with ``snakemake --cores 2`` and the repository's default configuration.
   **overhead** = (start-up + idle) / budget = 1 - stage time / budget; **no-overhead
   spec/min** = spec/min / (stage share), the rate if only the stages' own work took time (with
   the same threads per job). A no-op start-up (a process importing snakemake's script support,
-  ``surffin.pipeline``, ``dask.array`` and ``zarr``) is printed beside it as a floor.
+  ``surffin.pipeline.run``, ``dask.array`` and ``zarr``) is printed beside it as a floor.
 - **first use**: the logged stage time still holds one-off costs of a fresh process (modules
   imported on first use, first zarr open, dask's first graph). Each per-item stage of the first
   campaign's first specimen (and its scene's labels) is rerun twice in a fresh process from the
@@ -53,8 +53,8 @@ One large cube
 --------------
 A synthetic (view, y, x) = (5, H, W) cube (reflectance float64 from the scattering model with
 noise, AOI float32) is written as a store with chunks (view -1, 256, 256); a fresh process then
-runs :func:`surffin.scattering.fit_scattering`, :func:`surffin.features.variability` and
-:func:`surffin.features.features` (Gaussian smoothing) from it and writes the features store,
+runs :func:`surffin.method.scattering.fit_scattering`, :func:`surffin.method.features.variability` and
+:func:`surffin.method.features.features` (Gaussian smoothing) from it and writes the features store,
 under the threads scheduler with 2 workers. Peak RSS is the process's high-water mark (VmHWM);
 the baseline is that mark after the imports. Bounded memory means the increment grows far
 less than the cube (1600 x 1920 is 10x a 480 x 640 camera frame, 3200 x 3840 40x): the chunks
@@ -219,7 +219,7 @@ def process(campaign: Path, workdir: Path, extra: tuple[str, ...], overrides: di
 
 def noop_startup(repeat: int = 5) -> float:
     """Median seconds of a Python process that only imports what every stage job imports."""
-    imports = "import snakemake.script, surffin.pipeline, dask.array, zarr, xarray.backends.zarr"
+    imports = "import snakemake.script, surffin.pipeline.run, dask.array, zarr, xarray.backends.zarr"
     times = []
     for _ in range(repeat):
         start = time.perf_counter()
@@ -234,10 +234,10 @@ def first_and_second_call(store: str, scratch: str) -> dict:
     Returns
     -------
     dict
-        ``stage``, seconds of ``import surffin.pipeline``, of the ``first`` and the ``second`` call.
+        ``stage``, seconds of ``import surffin.pipeline.run``, of the ``first`` and the ``second`` call.
     """
     start = time.perf_counter()
-    from surffin.pipeline import run_stage
+    from surffin.pipeline.run import run_stage
 
     imported = time.perf_counter() - start
     attrs = json.loads((Path(store) / "zarr.json").read_text())["attributes"]  # reading it imports nothing
@@ -316,7 +316,7 @@ def report_campaigns(runs: list[Run], calls: list[dict], noop: float) -> None:
         )
     table(
         "Per-item stages run twice in a fresh process (run_stage from the stores' recorded provenance), s",
-        ["stage", "import surffin.pipeline", "first call", "second call", "first use"],
+        ["stage", "import surffin.pipeline.run", "first call", "second call", "first use"],
         [[c["stage"], c["import"], c["first"], c["second"], c["first"] - c["second"]] for c in calls],
     )
     rules = list(dict.fromkeys(rule for run in runs for rule in by_rule(run)))
@@ -349,8 +349,8 @@ def write_cube(path: str, shape: tuple[int, int, int]) -> None:
     import numpy as np
     import xarray as xr
 
-    from surffin.scattering import scattering_model
-    from surffin.store import write_store
+    from surffin.method.scattering import scattering_model
+    from surffin.io.store import write_store
 
     nview, ny, nx = shape
     rng = da.random.default_rng(0)
@@ -378,10 +378,10 @@ def peak_rss_mb() -> float:
 
 def features_from_cube(source: str, output: str) -> dict:
     """Fit and features of a cube store into a features store; peak RSS in this (fresh) process."""
-    from surffin.features import features, variability
-    from surffin.pipeline import dask_scheduler
-    from surffin.scattering import fit_scattering
-    from surffin.store import open_store, write_store
+    from surffin.method.features import features, variability
+    from surffin.pipeline.jobs import dask_scheduler
+    from surffin.method.scattering import fit_scattering
+    from surffin.io.store import open_store, write_store
 
     baseline = peak_rss_mb()
     start = time.perf_counter()

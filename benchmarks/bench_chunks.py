@@ -2,7 +2,7 @@
 
 Run by hand: ``python benchmarks/bench_chunks.py [--campaign DIR] [--chunks 256 512]
 [--repeat 5] [--threads 1]``. Without ``--campaign`` it renders the ``paper`` preset into a
-temporary folder. The calibration is fitted once; then :func:`surffin.pipeline.run_item` (the
+temporary folder. The calibration is fitted once; then :func:`surffin.pipeline.run.run_item` (the
 five stores, written and read back as the workflow's jobs do) runs for each specimen and the
 scene with each chunk size in turn, the sizes alternating so that the machine's load (it is
 shared) falls on all of them alike. One warm-up round is not counted. Prints the median seconds
@@ -18,8 +18,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from surffin import parameters
-from surffin.pipeline import run_calibration, run_item
+from surffin.pipeline import parameters
+from surffin.pipeline.run import run_calibration, run_item
 
 from _paper import paper_campaign  # benchmarks/_paper.py: this folder is on sys.path when run as a script
 

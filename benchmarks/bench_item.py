@@ -20,11 +20,11 @@ import dask
 import numpy as np
 import xarray as xr
 
-from surffin.calibration import calibrate
-from surffin.campaign import read_truth
-from surffin.classify import score, training_set
-from surffin.ingest import ingest_item
-from surffin.stages import aoi_stage, features_stage, labels_stage, reflectance_stage, registration_stage
+from surffin.method.calibration import calibrate
+from surffin.io.campaign import read_truth
+from surffin.method.classify import score, training_set
+from surffin.io.ingest import ingest_item
+from surffin.method.stages import aoi_stage, features_stage, labels_stage, reflectance_stage, registration_stage
 
 from _paper import paper_campaign  # benchmarks/_paper.py: this folder is on sys.path when run as a script
 

@@ -1,10 +1,10 @@
-"""Accuracy and speed of co-registration (surffin.registration) on a synthetic paper campaign.
+"""Accuracy and speed of co-registration (surffin.method.registration) on a synthetic paper campaign.
 
 Run by hand: ``python benchmarks/bench_registration.py [--campaign DIR] [--truth DIR]``.
 Without ``--campaign`` it renders the ``paper`` preset (seed 0) into a temporary folder
 (about a minute). The error of a map is measured against the simulator's truth
 (``<campaign>-truth/<item>.zarr``, ``u_ref``/``v_ref``) with
-:func:`surffin.registration.registration_error`: for each reference pixel, the distance in the
+:func:`surffin.method.registration.registration_error`: for each reference pixel, the distance in the
 reference image between the pixel and the true position of the point its map sends it to.
 
 Table 1, per item and method: median error (pixels) per non-reference view over all mapped
@@ -39,10 +39,10 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from surffin.campaign import read_campaign
+from surffin.io.campaign import read_campaign
 from surffin.errors import RegistrationError
-from surffin.ingest import ingest_item
-from surffin.registration import DETECTORS, register, registration_error, registration_maps
+from surffin.io.ingest import ingest_item
+from surffin.method.registration import DETECTORS, register, registration_error, registration_maps
 from surffin.simulate import simulate_campaign
 
 ALL_DETECTORS = ("sift", "orb", "akaze")

@@ -18,7 +18,7 @@ import numpy as np
 import xarray as xr
 from scipy.optimize import curve_fit
 
-from surffin.scattering import _fit_scattering, fit_scattering, scattering_model
+from surffin.method.scattering import _fit_scattering, fit_scattering, scattering_model
 
 
 def data(npix, nview=5, seed=0):

@@ -7,7 +7,7 @@ Run by hand: ``python benchmarks/bench_uncertainty.py [--campaign DIR]``. Withou
 workflow's parameters). Scored pixels: at least the preset's ``label_margin``
 from the edges of surfaces. Prints, per item and parameter, the share of pixels
 whose true error lies within 1 and 2 reported uncertainties
-(:func:`surffin.uncertainty.coverage`):
+(:func:`surffin.analysis.uncertainty.coverage`):
 
 1. the per-pixel fit's ``R0_sigma`` / ``n_sigma`` against Student's t with
    ``n_views - 2`` degrees of freedom;
@@ -28,14 +28,14 @@ from pathlib import Path
 import dask
 import xarray as xr
 
-from surffin import parameters
-from surffin.calibration import calibrate
-from surffin.campaign import read_truth
-from surffin.classify import score, training_set
-from surffin.features import UNCERTAINTY, smooth_uncertainty
-from surffin.ingest import ingest_item
-from surffin.stages import labels_stage, process_item
-from surffin.uncertainty import coverage
+from surffin.pipeline import parameters
+from surffin.method.calibration import calibrate
+from surffin.io.campaign import read_truth
+from surffin.method.classify import score, training_set
+from surffin.method.features import UNCERTAINTY, smooth_uncertainty
+from surffin.io.ingest import ingest_item
+from surffin.method.stages import labels_stage, process_item
+from surffin.analysis.uncertainty import coverage
 
 from _paper import paper_campaign  # benchmarks/_paper.py: this folder is on sys.path when run as a script
 

@@ -6,7 +6,7 @@ Run by hand: ``python benchmarks/bench_validation.py [--campaigns NAME ...] [--s
 Each validation campaign (:data:`surffin.simulate.validation.VALIDATION`; ``paper``
 and ``tiny`` too) is rendered at each seed into ``--workdir`` (kept, and reused by
 later runs) and evaluated in this process with the workflow's parameters
-(:func:`surffin.evaluation.evaluate_campaign`). Printed per campaign and seed, then
+(:func:`surffin.analysis.evaluation.evaluate_campaign`). Printed per campaign and seed, then
 the mean and the range over the seeds:
 
 - ``cal %``: median relative error of the fitted ``k f(d, theta)`` over the crop;
@@ -38,8 +38,8 @@ import numpy as np
 import yaml
 
 import surffin
-from surffin import parameters
-from surffin.evaluation import evaluate_campaign, risk_coverage
+from surffin.pipeline import parameters
+from surffin.analysis.evaluation import evaluate_campaign, risk_coverage
 
 ROWS = ("cal %", "R0 %", "n %", "ceil R0", "ceil n", "missing", "label", "filtered", "unclass", "ceiling", "board rej")
 COVERAGES = (1.0, 0.999, 0.995, 0.99, 0.98, 0.95)
@@ -70,7 +70,7 @@ def render(name: str, seed: int, workdir: Path) -> Path:
 
 
 def row(result: dict) -> dict:
-    """One line of the table from :func:`~surffin.evaluation.evaluate_campaign`'s result."""
+    """One line of the table from :func:`~surffin.analysis.evaluation.evaluate_campaign`'s result."""
     scenes, features = result["scenes"].values(), result["features"]
     return {
         "cal %": 100 * result["calibration_error"],

@@ -17,10 +17,10 @@ from surffin.errors import (
 )
 
 _LAZY = {
-    "read_campaign": "surffin.campaign",
+    "read_campaign": "surffin.io.campaign",
     "simulate_campaign": "surffin.simulate",
-    "fit_scattering": "surffin.scattering",
-    "angle_of_incidence": "surffin.geometry",
+    "fit_scattering": "surffin.method.scattering",
+    "angle_of_incidence": "surffin.method.geometry",
 }
 
 __all__ = [

@@ -12,7 +12,7 @@ __all__ = ["main"]
 
 
 def _check(args: argparse.Namespace) -> int:
-    from surffin.campaign import read_campaign
+    from surffin.io.campaign import read_campaign
 
     camp = read_campaign(args.campaign, require_calibration=not args.no_calibration)
     print(f"{camp.path}: campaign {camp.name!r} is valid")
@@ -28,7 +28,7 @@ def _check(args: argparse.Namespace) -> int:
 def _inspect(args: argparse.Namespace) -> int:
     import json
 
-    from surffin.store import open_store
+    from surffin.io.store import open_store
 
     ds = open_store(args.store)
     print(ds)
@@ -54,8 +54,8 @@ def _whole_number(minimum: int):
 
 
 def _sensitivity(args: argparse.Namespace) -> int:
-    from surffin.sensitivity import THRESHOLD, run_sensitivity, separation_summary, views_slopes
-    from surffin.store import open_store
+    from surffin.analysis.sensitivity import THRESHOLD, run_sensitivity, separation_summary, views_slopes
+    from surffin.io.store import open_store
 
     paths = run_sensitivity(args.out, draws=args.draws, seed=args.seed)
     table = open_store(paths["store"], stage="sensitivity").load()

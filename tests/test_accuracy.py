@@ -1,6 +1,6 @@
 """End to end against truth: the whole method with the default config on campaigns it did not make.
 
-:func:`surffin.evaluation.evaluate_campaign` runs the calibration, every item's
+:func:`surffin.analysis.evaluation.evaluate_campaign` runs the calibration, every item's
 chain, the training set and the labels, and scores them against the simulator's
 truth (whose eq. 3 and eq. 5 are the simulator's own, not the method's). The
 bounds below come from measurements over seeds 0-2 (quoted beside each), with
@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 import surffin
-from surffin.evaluation import evaluate_campaign, risk_coverage
-from surffin.parameters import read_config
+from surffin.analysis.evaluation import evaluate_campaign, risk_coverage
+from surffin.pipeline.parameters import read_config
 from surffin.simulate import PRESETS
 
 pytestmark = pytest.mark.slow

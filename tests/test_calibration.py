@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from scipy.optimize import least_squares
 
 import surffin
-from surffin.calibration import (
+from surffin.method.calibration import (
     CALIBRATION_STATUS,
     TERMS,
     Observation,
@@ -25,11 +25,11 @@ from surffin.calibration import (
     reference_scale,
     reflectance,
 )
-from surffin.campaign import Roi
+from surffin.grid import Roi
 from surffin.errors import CalibrationError
-from surffin.noise import NOISE_VIEWS
+from surffin.method.noise import NOISE_VIEWS
 from surffin.simulate import PRESETS, Material
-from surffin.store import open_store, write_store
+from surffin.io.store import open_store, write_store
 
 STATUS = {name: code for code, name in CALIBRATION_STATUS.items()}
 TINY = PRESETS["tiny"]
@@ -88,7 +88,7 @@ def test_instrument_function_numpy_and_xarray_agree():
 def test_simulator_and_method_agree_on_eq3_and_eq5():
     # The simulator writes eq. 3 and eq. 5 itself (its truth must not be made by the code it
     # checks, tests/test_simulate.py keeps it free of such imports): both versions must agree.
-    from surffin.scattering import scattering_model
+    from surffin.method.scattering import scattering_model
     from surffin.simulate import instrument as simulator
 
     rng = np.random.default_rng(7)
@@ -438,7 +438,7 @@ def campaign(request, tmp_path_factory):
 
 def held_out(camp, ds):
     """The held-out wall view: its reflectance through the public API, and the truth rho_wall cos(theta)."""
-    from surffin.geometry import angle_of_incidence
+    from surffin.method.geometry import angle_of_incidence
 
     (path,) = [path for path in camp.calibration.wall if path.stem == HELD_OUT]
     view = camp.read_view(path)
@@ -504,7 +504,7 @@ def test_calibrate_recovers_the_truth(campaign):
 
 
 def test_calibration_measures_the_intensity_noise(campaign):
-    """The wall's noise model against the simulator's own noise formula (independent of surffin.noise)."""
+    """The wall's noise model against the simulator's own noise formula (independent of surffin.method.noise)."""
     name, _, ds, _, _ = campaign
     measured = np.sqrt(ds["noise_variance"].values)
     level = ds["noise_intensity"].values

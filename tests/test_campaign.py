@@ -1,12 +1,13 @@
-"""Tests of surffin.campaign: read_campaign's validation and read_truth."""
+"""Tests of surffin.io.campaign: read_campaign's validation and read_truth."""
 
 import numpy as np
 import pytest
 import yaml
 
-from surffin.campaign import Camera, Roi, read_campaign, read_truth
+from surffin.grid import Roi
+from surffin.io.campaign import Camera, read_campaign, read_truth
 from surffin.errors import CampaignError
-from surffin.viewfile import ABCY16_DEFAULT, write_view
+from surffin.io.viewfile import ABCY16_DEFAULT, write_view
 
 VIEW_FILES = {
     "calibration/wall": ["w0.npz", "w1.ply", "w2.raw"],

@@ -1,4 +1,4 @@
-"""Training sets, k-NN classification, label filters and scores (surffin.classify)."""
+"""Training sets, k-NN classification, label filters and scores (surffin.method.classify)."""
 
 import json
 
@@ -12,8 +12,8 @@ from hypothesis.extra import numpy as hnp
 from scipy.stats import multivariate_normal
 from sklearn.neighbors import KNeighborsClassifier
 
-from surffin.campaign import Roi
-from surffin.classify import (
+from surffin.grid import Roi
+from surffin.method.classify import (
     FEATURES,
     NOISE_CORRECTED,
     UNCLASSIFIED_REASONS,
@@ -26,8 +26,8 @@ from surffin.classify import (
     training_set,
 )
 from surffin.errors import SurffinError
-from surffin.stages import labels_stage
-from surffin.store import open_store, write_store
+from surffin.method.stages import labels_stage
+from surffin.io.store import open_store, write_store
 
 Y0, X0 = 100, 60
 """Sensor position of the feature grids' top-left pixel."""

@@ -13,9 +13,9 @@ from scipy.optimize import least_squares
 from scipy.stats import norm
 
 import surffin
-from surffin.calibration import TERMS, calibration_set, instrument_function
-from surffin.campaign import Roi
-from surffin.diagnostics import (
+from surffin.method.calibration import TERMS, calibration_set, instrument_function
+from surffin.grid import Roi
+from surffin.analysis.diagnostics import (
     CORRELATION_FIGURE,
     REPEATABILITY_FIGURE,
     coefficient_statistics,
@@ -28,11 +28,11 @@ from surffin.diagnostics import (
     wall_features,
 )
 from surffin.errors import CalibrationError
-from surffin.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW
-from surffin.pipeline import run_calibration
+from surffin.method.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW
+from surffin.pipeline.run import run_calibration
 from surffin.simulate import PRESETS
 from surffin.simulate.plan import REPEAT_FOLDERS
-from surffin.store import open_store
+from surffin.io.store import open_store
 
 TINY = PRESETS["tiny"]
 HELD_OUT = "w005"

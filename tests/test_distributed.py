@@ -12,7 +12,7 @@ import xarray as xr
 from distributed import Client, LocalCluster, get_task_stream
 
 import surffin
-from surffin.pipeline import run_calibration, run_ingest, run_stage
+from surffin.pipeline.run import run_calibration, run_ingest, run_stage
 
 #: Chunks over the 40 x 60 crop of the tiny camera: neither divides it.
 CHUNKS = {"y": 16, "x": 24}

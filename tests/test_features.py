@@ -1,4 +1,4 @@
-"""Feature images (surffin.features) against brute-force loops and analytic surfaces."""
+"""Feature images (surffin.method.features) against brute-force loops and analytic surfaces."""
 
 import dask.array as dask_array
 import numpy as np
@@ -7,8 +7,8 @@ import xarray as xr
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from surffin.campaign import Roi
-from surffin.features import (
+from surffin.grid import Roi
+from surffin.method.features import (
     QUALITY,
     features,
     gaussian_sigma,
@@ -22,7 +22,7 @@ from surffin.features import (
     variability,
     variance_inflation,
 )
-from surffin.scattering import fit_scattering, scattering_model
+from surffin.method.scattering import fit_scattering, scattering_model
 
 Y0, X0 = 40, 70
 """Sensor position of the crops' top-left pixel: grids never start at 0."""

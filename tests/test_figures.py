@@ -10,9 +10,9 @@ import xarray as xr
 from matplotlib.image import imread
 
 import surffin
-from surffin.calibration import SAMPLE_QUANTITIES, TERMS, calibrate, instrument_function, reflectance
-from surffin.campaign import Roi
-from surffin.figures import (
+from surffin.method.calibration import SAMPLE_QUANTITIES, TERMS, calibrate, instrument_function, reflectance
+from surffin.grid import Roi
+from surffin.report.figures import (
     FIGURE_KINDS,
     accuracy_table,
     parameter_table,
@@ -25,10 +25,10 @@ from surffin.figures import (
     run_figures,
     write_table,
 )
-from surffin.geometry import angle_of_incidence
-from surffin.pipeline import run_roughness_map
-from surffin.roughness import roughness_relation
-from surffin.store import write_store
+from surffin.method.geometry import angle_of_incidence
+from surffin.pipeline.run import run_roughness_map
+from surffin.method.roughness import roughness_relation
+from surffin.io.store import write_store
 
 REPO = Path(__file__).resolve().parents[1]
 HEIGHT, WIDTH = 24, 32

@@ -1,4 +1,4 @@
-"""AOI and plane normals from organized clouds (surffin.geometry) against independent references."""
+"""AOI and plane normals from organized clouds (surffin.method.geometry) against independent references."""
 
 import warnings
 
@@ -9,7 +9,7 @@ import xarray as xr
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from surffin.geometry import (
+from surffin.method.geometry import (
     DEFAULT_JUMP,
     DEFAULT_MAX_WINDOW,
     DEFAULT_WINDOW,

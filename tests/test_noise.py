@@ -1,11 +1,11 @@
-"""The intensity noise model (surffin.noise) and its use in the variability feature."""
+"""The intensity noise model (surffin.method.noise) and its use in the variability feature."""
 
 import numpy as np
 import pytest
 import xarray as xr
 
-from surffin.features import local_std, variability
-from surffin.noise import MIN_SAMPLES, NOISE_EDGES, NoiseStatistics, relative_noise
+from surffin.method.features import local_std, variability
+from surffin.method.noise import MIN_SAMPLES, NOISE_EDGES, NoiseStatistics, relative_noise
 
 SHAPE = (200, 300)
 

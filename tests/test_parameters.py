@@ -1,4 +1,4 @@
-"""The one config -> keyword mapping (surffin.parameters) against the functions and the schema."""
+"""The one config -> keyword mapping (surffin.pipeline.parameters) against the functions and the schema."""
 
 import inspect
 import math
@@ -6,9 +6,9 @@ import math
 import pytest
 import yaml
 
-from surffin import parameters
-from surffin.calibration import calibrate
-from surffin.stages import aoi_stage, features_stage, labels_stage
+from surffin.pipeline import parameters
+from surffin.method.calibration import calibrate
+from surffin.method.stages import aoi_stage, features_stage, labels_stage
 
 SCHEMA = parameters.DEFAULT_CONFIG.parent.parent / "workflow" / "schemas" / "config.schema.yaml"
 

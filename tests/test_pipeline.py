@@ -8,7 +8,8 @@ import pytest
 import xarray as xr
 
 import surffin
-from surffin.pipeline import dask_scheduler, run_calibration, run_ingest, run_item, run_items, run_stage
+from surffin.pipeline.jobs import dask_scheduler
+from surffin.pipeline.run import run_calibration, run_ingest, run_item, run_items, run_stage
 
 CHUNKS = {"y": 32, "x": 32}
 STORES = ("ingest", "aoi", "reflectance", "registered", "features")
@@ -108,7 +109,7 @@ def test_local_schedulers_never_import_dask_distributed():
     # choose its method) imports it: 0.4 s in every job. A fresh process shows whether it did.
     code = (
         "import sys, dask.array as da\n"
-        "from surffin.pipeline import dask_scheduler\n"
+        "from surffin.pipeline.jobs import dask_scheduler\n"
         "with dask_scheduler('threads', 2):\n"
         "    total = da.ones((64, 64), chunks=16).rechunk((32, 8)).sum().compute()\n"
         "print(int(total), 'distributed' in sys.modules)\n"

@@ -1,11 +1,11 @@
-"""The paper comparison lines up the workflow's numbers with the paper's (surffin.reproduction)."""
+"""The paper comparison lines up the workflow's numbers with the paper's (surffin.analysis.reproduction)."""
 
 import json
 
 import pytest
 
-from surffin.diagnostics import PAPER as CALIBRATION_PAPER
-from surffin.reproduction import (
+from surffin.analysis.diagnostics import PAPER as CALIBRATION_PAPER
+from surffin.analysis.reproduction import (
     ORIGINS,
     PAPER,
     comparison,

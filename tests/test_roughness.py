@@ -1,4 +1,4 @@
-"""The relation of mean n and roughness, and the indicative roughness map (surffin.roughness)."""
+"""The relation of mean n and roughness, and the indicative roughness map (surffin.method.roughness)."""
 
 import json
 
@@ -8,9 +8,9 @@ import pytest
 import xarray as xr
 
 from surffin.errors import SurffinError
-from surffin.pipeline import run_roughness_map, run_roughness_relation
-from surffin.roughness import roughness_map, roughness_relation
-from surffin.store import open_store, write_store
+from surffin.pipeline.run import run_roughness_map, run_roughness_relation
+from surffin.method.roughness import roughness_map, roughness_relation
+from surffin.io.store import open_store, write_store
 
 ROUGHNESS = {"S1": 0.0068, "S2": 0.05, "S3": 0.11, "S4": 0.2}
 

@@ -5,7 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import least_squares
 
-from surffin.scattering import FIT_STATUS, _fit_scattering, fit_scattering, scattering_model
+from surffin.method.scattering import FIT_STATUS, _fit_scattering, fit_scattering, scattering_model
 
 
 def noisy_pixels(npix, nview=5, sigma=0.02, seed=0):

@@ -16,7 +16,7 @@ from scipy.optimize import least_squares
 from scipy.stats import chi2
 
 from surffin.cli import main
-from surffin.sensitivity import (
+from surffin.analysis.sensitivity import (
     NOISE_LEVELS,
     OUTPUTS,
     VIEW_COUNTS,
@@ -30,7 +30,7 @@ from surffin.sensitivity import (
     separation_summary,
     views_slopes,
 )
-from surffin.store import open_store
+from surffin.io.store import open_store
 
 DRAWS = 500
 # Band of the statistical checks, in standard errors of the estimate.

@@ -391,13 +391,13 @@ def test_default_presets_write_their_crop_and_first_view_references(noisy):
 
 #: Modules of the method: the simulator's truth must not be made by the code it validates.
 METHOD_MODULES = (
-    "surffin.calibration",
-    "surffin.scattering",
-    "surffin.geometry",
-    "surffin.features",
-    "surffin.classify",
-    "surffin.registration",
-    "surffin.stages",
+    "surffin.method.calibration",
+    "surffin.method.scattering",
+    "surffin.method.geometry",
+    "surffin.method.features",
+    "surffin.method.classify",
+    "surffin.method.registration",
+    "surffin.method.stages",
 )
 
 
@@ -432,17 +432,17 @@ def test_simulator_imports_no_method_code(tmp_path):
     # the check sees every form of import, at any depth of the module
     sample = tmp_path / "sample.py"
     sample.write_text(
-        "import numpy\nfrom surffin import calibration\nfrom ..scattering import scattering_model\n"
-        "from .scene import render\ndef f():\n    import surffin.geometry as g\n"
-        "if False:\n    from surffin.stages import process_item\n"
+        "import numpy\nfrom surffin.method import calibration\nfrom ..method.scattering import scattering_model\n"
+        "from .scene import render\ndef f():\n    import surffin.method.geometry as g\n"
+        "if False:\n    from surffin.method.stages import process_item\n"
     )
     assert method_imports(sample) == [
-        "surffin.calibration",
-        "surffin.geometry",
-        "surffin.scattering",
-        "surffin.scattering.scattering_model",
-        "surffin.stages",
-        "surffin.stages.process_item",
+        "surffin.method.calibration",
+        "surffin.method.geometry",
+        "surffin.method.scattering",
+        "surffin.method.scattering.scattering_model",
+        "surffin.method.stages",
+        "surffin.method.stages.process_item",
     ]
 
 

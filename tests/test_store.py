@@ -7,7 +7,7 @@ import zarr
 
 import surffin
 from surffin.errors import StoreError
-from surffin.store import clean_leftovers, open_store, provenance, write_store
+from surffin.io.store import clean_leftovers, open_store, provenance, write_store
 
 
 def cube(nview=3, ny=7, nx=9, seed=0):

@@ -1,13 +1,13 @@
-"""Calibration check of uncertainties (surffin.uncertainty) on synthetic fits with known truth."""
+"""Calibration check of uncertainties (surffin.analysis.uncertainty) on synthetic fits with known truth."""
 
 import numpy as np
 import pytest
 import xarray as xr
 from scipy import stats
 
-from surffin.features import features, residual_correlation
-from surffin.scattering import fit_scattering, scattering_model
-from surffin.uncertainty import NORMAL_COVERAGE, coverage
+from surffin.method.features import features, residual_correlation
+from surffin.method.scattering import fit_scattering, scattering_model
+from surffin.analysis.uncertainty import NORMAL_COVERAGE, coverage
 
 Y0, X0 = 30, 50
 """Sensor position of the features' top-left pixel; the truth covers a larger sensor area."""

@@ -1,11 +1,11 @@
-"""Tests of surffin.viewfile: the three view forms, poses, validation and listing."""
+"""Tests of surffin.io.viewfile: the three view forms, poses, validation and listing."""
 
 import numpy as np
 import plyfile
 import pytest
 
 from surffin.errors import ViewFileError
-from surffin.viewfile import (
+from surffin.io.viewfile import (
     check_view,
     list_views,
     pose_sidecar_path,

@@ -33,8 +33,9 @@ from surffin.simulate.truth import (
     reference_coordinates,
     scene_truth_label,
 )
-from surffin.store import provenance, write_store
-from surffin.viewfile import VIEW_SUFFIXES, write_atomically, write_view
+from surffin.io.store import provenance, write_store
+from surffin.io.files import write_atomically
+from surffin.io.viewfile import VIEW_SUFFIXES, write_view
 
 __all__ = ["simulate_campaign"]
 

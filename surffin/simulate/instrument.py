@@ -11,7 +11,7 @@ counts) and to the range along each pixel's ray (growing on weak returns); weak
 returns, grazing angles and random dropouts become invalid.
 
 Eq. 3 and eq. 5 are written here from the method's description, not imported
-from :mod:`surffin.scattering` or :mod:`surffin.calibration`: the truth of a
+from :mod:`surffin.method.scattering` or :mod:`surffin.method.calibration`: the truth of a
 synthetic campaign must not be made by the code it validates (a test keeps the
 simulator free of such imports, another checks that both agree).
 """

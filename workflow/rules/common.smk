@@ -7,11 +7,11 @@ from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 import surffin
-import surffin.roughness
-from surffin.calibration import calibration_set
-from surffin.diagnostics import representative_specimens
+import surffin.method.roughness
+from surffin.method.calibration import calibration_set
+from surffin.analysis.diagnostics import representative_specimens
 from surffin.errors import SurffinError
-from surffin.parameters import aoi_parameters, calibration_parameters, feature_parameters, label_parameters
+from surffin.pipeline.parameters import aoi_parameters, calibration_parameters, feature_parameters, label_parameters
 
 validate(config, "../schemas/config.schema.yaml")
 
@@ -60,7 +60,7 @@ def load_campaign():
     try:
         camp = surffin.read_campaign(CAMPAIGN, require_calibration=config["calibration_store"] is None)
         if config["calibration_store"] is not None:
-            from surffin.pipeline import check_calibration
+            from surffin.pipeline.run import check_calibration
 
             check_calibration(config["calibration_store"], camp)
         return camp
@@ -222,7 +222,7 @@ def roughness_features(wildcards):
 
 def roughness_outputs():
     """The relation and the scenes' maps, when enough specimens carry a roughness."""
-    if len(ROUGH_SPECIMENS) < surffin.roughness.MIN_SPECIMENS:
+    if len(ROUGH_SPECIMENS) < surffin.method.roughness.MIN_SPECIMENS:
         return []
     return [
         f"{PROCESSED}/roughness/relation.json",

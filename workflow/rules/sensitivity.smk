@@ -1,4 +1,4 @@
-from surffin.sensitivity import OUTPUTS as SENSITIVITY_FILES
+from surffin.analysis.sensitivity import OUTPUTS as SENSITIVITY_FILES
 
 # run_sensitivity names its files (SENSITIVITY_FILES) in the folder it is given.
 SENSITIVITY = {key: f"{PROCESSED}/sensitivity/{name}" for key, name in SENSITIVITY_FILES.items()}

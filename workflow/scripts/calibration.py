@@ -1,4 +1,4 @@
-from surffin.pipeline import run_calibration
+from surffin.pipeline.run import run_calibration
 
 run_calibration(
     snakemake.params.campaign,

@@ -1,6 +1,6 @@
 from pathlib import Path
 
-from surffin.diagnostics import run_calibration_diagnostics
+from surffin.analysis.diagnostics import run_calibration_diagnostics
 
 run_calibration_diagnostics(
     snakemake.output.json,

@@ -1,4 +1,4 @@
-from surffin.figures import run_figures
+from surffin.report.figures import run_figures
 
 run_figures(
     dict(snakemake.output.items()),

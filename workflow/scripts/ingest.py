@@ -1,4 +1,4 @@
-from surffin.pipeline import run_ingest
+from surffin.pipeline.run import run_ingest
 
 run_ingest(
     snakemake.params.campaign,

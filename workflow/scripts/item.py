@@ -1,4 +1,4 @@
-from surffin.pipeline import run_items
+from surffin.pipeline.run import run_items
 
 chains = snakemake.params.chains
 run_items(

@@ -1,4 +1,4 @@
-from surffin.reproduction import run_paper_comparison
+from surffin.analysis.reproduction import run_paper_comparison
 
 run_paper_comparison(
     snakemake.output[0],

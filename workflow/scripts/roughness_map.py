@@ -1,4 +1,4 @@
-from surffin.pipeline import run_roughness_map
+from surffin.pipeline.run import run_roughness_map
 
 run_roughness_map(
     snakemake.output[0],

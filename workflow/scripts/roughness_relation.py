@@ -1,4 +1,4 @@
-from surffin.pipeline import run_roughness_relation
+from surffin.pipeline.run import run_roughness_relation
 
 run_roughness_relation(
     snakemake.output[0],

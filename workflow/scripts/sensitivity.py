@@ -1,6 +1,6 @@
 from pathlib import Path
 
-from surffin.sensitivity import run_sensitivity
+from surffin.analysis.sensitivity import run_sensitivity
 
 run_sensitivity(
     Path(snakemake.output.store).parent,

@@ -1,4 +1,4 @@
-from surffin.pipeline import run_stage
+from surffin.pipeline.run import run_stage
 
 run_stage(
     snakemake.params.stage,

@@ -1,4 +1,4 @@
-from surffin.pipeline import run_summary
+from surffin.pipeline.run import run_summary
 
 run_summary(
     snakemake.output[0],

@@ -1,4 +1,4 @@
-from surffin.pipeline import run_training
+from surffin.pipeline.run import run_training
 
 run_training(
     snakemake.output[0],

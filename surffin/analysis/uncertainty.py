@@ -7,7 +7,7 @@ fractions, per parameter, for an item whose truth is known (the synthetic
 camera writes it, :mod:`surffin.simulate.truth`):
 
 - the smoothed features ``R0``, ``n`` with ``R0_uncertainty``,
-  ``n_uncertainty`` (:func:`surffin.features.features`). Their true value is
+  ``n_uncertainty`` (:func:`surffin.method.features.features`). Their true value is
   the truth smoothed the same way (the same kernel over the pixels the fit
   used): smoothing averages the surface's texture too, and that averaging is
   the feature's definition, not an error of the measurement. The window
@@ -31,7 +31,7 @@ import math
 import numpy as np
 import xarray as xr
 
-from surffin.features import UNCERTAINTY, smooth
+from surffin.method.features import UNCERTAINTY, smooth
 
 __all__ = ["PARAMETERS", "NORMAL_COVERAGE", "coverage"]
 
@@ -65,7 +65,7 @@ def coverage(
     Parameters
     ----------
     features : Dataset (y, x)
-        A features store (:func:`surffin.features.features`): ``R0``, ``n``,
+        A features store (:func:`surffin.method.features.features`): ``R0``, ``n``,
         ``R0_uncertainty``, ``n_uncertainty``, ``R0_fit``, ``n_fit`` and attrs
         ``smoothing_size``, ``smoothing_sigma``, ``min_weight``; with
         ``unsmoothed``: ``R0_fit``, ``n_fit``, ``R0_sigma``, ``n_sigma``,

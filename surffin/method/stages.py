@@ -1,6 +1,6 @@
 """The method's stages as pure functions: Datasets in, one Dataset out.
 
-Each stage here is what one workflow rule computes; :mod:`surffin.pipeline`
+Each stage here is what one workflow rule computes; :mod:`surffin.pipeline.run`
 opens its input stores, calls it and writes its output store, and
 :func:`process_item` chains them in memory (tests, benchmarks, notebooks).
 """
@@ -11,10 +11,10 @@ from collections.abc import Mapping
 
 import xarray as xr
 
-from surffin.calibration import reflectance
-from surffin.campaign import Roi
-from surffin.classify import NOISE_CORRECTED, UNCLASSIFIED, classify, filter_labels, unclassified_counts
-from surffin.features import (
+from surffin.method.calibration import reflectance
+from surffin.grid import Roi
+from surffin.method.classify import NOISE_CORRECTED, UNCLASSIFIED, classify, filter_labels, unclassified_counts
+from surffin.method.features import (
     DEFAULT_SIZE,
     features,
     first_available,
@@ -22,11 +22,11 @@ from surffin.features import (
     variability,
     views_by_incidence,
 )
-from surffin.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW, DEFAULT_WINDOW, angle_of_incidence
-from surffin.noise import relative_noise
-from surffin.registration import register, registration_maps, warp
-from surffin.roughness import roughness_map
-from surffin.scattering import DEFAULT_MIN_SPREAD, fit_scattering
+from surffin.method.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW, DEFAULT_WINDOW, angle_of_incidence
+from surffin.method.noise import relative_noise
+from surffin.method.registration import register, registration_maps, warp
+from surffin.method.roughness import roughness_map
+from surffin.method.scattering import DEFAULT_MIN_SPREAD, fit_scattering
 
 __all__ = [
     "aoi_stage",
@@ -36,15 +36,7 @@ __all__ = [
     "labels_stage",
     "roughness_stage",
     "process_item",
-    "as_roi",
 ]
-
-
-def as_roi(roi: Roi | Mapping | None) -> Roi | None:
-    """A Roi from its ``{"y": [a, b], "x": [c, d]}`` form (as passed through workflow params)."""
-    if roi is None or isinstance(roi, Roi):
-        return roi
-    return Roi(tuple(roi["y"]), tuple(roi["x"]))
 
 
 def _item_attrs(ingest: xr.Dataset) -> dict:
@@ -69,7 +61,7 @@ def reflectance_stage(ingest: xr.Dataset, aoi: xr.Dataset, calibration: xr.Datas
     """Calibrated reflectance of every view on its own grid (paper eq. 2), and its relative noise.
 
     ``reflectance_noise`` is each pixel's relative noise from its intensity and
-    the calibration's noise model (:mod:`surffin.noise`); a calibration
+    the calibration's noise model (:mod:`surffin.method.noise`); a calibration
     without one gives none.
     """
     r = reflectance(ingest["intensity"], aoi["distance"], aoi["aoi"], calibration["coef"], calibration.attrs["scale_k"])
@@ -83,7 +75,7 @@ def registration_stage(
     ingest: xr.Dataset, aoi: xr.Dataset, reflectance: xr.Dataset, *, method: str = "auto", roi=None
 ) -> xr.Dataset:
     """Reflectance and AOI of every view on the reference view's grid (method step 4)."""
-    roi = as_roi(roi)
+    roi = Roi.from_mapping(roi)
     # The roi picks the plane a homography registers (a specimen on its board); poses need none.
     options = {"roi": {"y": list(roi.y), "x": list(roi.x)}} if roi is not None and method != "poses" else {}
     maps = registration_maps(ingest.compute(), method=method, **options)
@@ -116,7 +108,7 @@ def features_stage(
     variability. ``variability_view`` (y, x) says which view, as a
     position in the attr ``variability_views``. The uncertainties of the smoothed R0 and n account for the
     spatial correlation of the fit's residuals over the item
-    (:func:`surffin.features.residual_correlation`).
+    (:func:`surffin.method.features.residual_correlation`).
     """
     fit = fit_scattering(
         registered["reflectance"].chunk({"view": -1}),
@@ -125,7 +117,7 @@ def features_stage(
         min_spread=min_spread,
     ).persist()
     correlation = residual_correlation(registered["reflectance"], registered["aoi"], fit, max_lag=size - 1)
-    order = views_by_incidence(aoi["aoi"], as_roi(roi))
+    order = views_by_incidence(aoi["aoi"], Roi.from_mapping(roi))
     noise = reflectance.get("reflectance_noise")
     own = xr.concat(
         [
@@ -166,8 +158,8 @@ def labels_stage(
     """Per-pixel class labels of a scene, before and after the label filter (method step 6).
 
     Pixels unlike every class (``outlier_probability``) or between classes
-    (``min_posterior``) are unclassified, as :func:`surffin.classify.classify`
-    says; the filter fills isolated ones (:func:`surffin.classify.filter_labels`),
+    (``min_posterior``) are unclassified, as :func:`surffin.method.classify.classify`
+    says; the filter fills isolated ones (:func:`surffin.method.classify.filter_labels`),
     and ``label_filtered``'s ``unclassified`` attr counts those left by reason.
     ``posterior`` is the class model's probability of each pixel's k-NN class.
     """
@@ -182,7 +174,7 @@ def labels_stage(
 
 
 def roughness_stage(features: xr.Dataset, *, relation: Mapping) -> xr.Dataset:
-    """Indicative roughness map of an item from its smoothed n (:mod:`surffin.roughness`)."""
+    """Indicative roughness map of an item from its smoothed n (:mod:`surffin.method.roughness`)."""
     ds = roughness_map(features["n"], relation)
     ds.attrs = {**_item_attrs(features), **ds.attrs}
     return ds

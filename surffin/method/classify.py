@@ -38,9 +38,9 @@ import cv2
 import numpy as np
 import xarray as xr
 
-from surffin.campaign import Roi
+from surffin.grid import Roi
 from surffin.errors import SurffinError
-from surffin.features import UNCERTAINTY, _check_grid, _check_size, _image_filter, select_roi
+from surffin.method.features import UNCERTAINTY, _check_grid, _check_size, _image_filter, select_roi
 
 __all__ = [
     "FEATURES",
@@ -62,7 +62,7 @@ FEATURES = ("R0", "n", "variability")
 #: Label of a pixel with no class (a feature is missing, too uncertain, or unlike every class).
 UNCLASSIFIED = -1
 #: Attr of feature stores and training sets: 1 when the variability had the camera noise taken
-#: out (:func:`surffin.features.variability`), 0 (or absent: stores made before) when not.
+#: out (:func:`surffin.method.features.variability`), 0 (or absent: stores made before) when not.
 #: Sets that differ are never pooled nor compared.
 NOISE_CORRECTED = "variability_noise_corrected"
 
@@ -179,7 +179,7 @@ def training_set(
     ----------
     items : mapping of item name to (features, class name, roi)
         ``features``: Dataset (y, x) with :data:`FEATURES` (output of
-        :func:`surffin.features.features`); ``roi``: the specimen's pixels in
+        :func:`surffin.method.features.features`); ``roi``: the specimen's pixels in
         sensor coordinates, or None for all pixels.
     max_per_class : int, optional
         Cap on the samples of a class. A class of ``m`` items takes at most
@@ -362,7 +362,7 @@ def classify(
     Parameters
     ----------
     features : Dataset (y, x)
-        With :data:`FEATURES` (output of :func:`surffin.features.features`),
+        With :data:`FEATURES` (output of :func:`surffin.method.features.features`),
         and optionally ``R0_uncertainty``, ``n_uncertainty``.
     training : Dataset
         Output of :func:`training_set` or :func:`combine_training`.
@@ -578,7 +578,7 @@ def score(label: xr.DataArray, truth_label, truth_classes: Sequence[str], classe
         Class indices into ``classes``, -1 = unclassified, with sensor coordinates.
     truth_label : (height, width) ndarray or (y, x) DataArray of int
         Truth class indices into ``truth_classes``, -1 = not scored: a whole
-        sensor image (as :func:`surffin.campaign.read_truth` returns) indexed
+        sensor image (as :func:`surffin.io.campaign.read_truth` returns) indexed
         by the sensor coordinates of ``label``, or a DataArray selected by them.
     truth_classes : sequence of str
         Names of the truth indices 0..; their order need not match ``classes``.

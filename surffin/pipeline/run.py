@@ -2,7 +2,7 @@
 
 Each function here is what one workflow rule runs (through a short script in
 ``workflow/scripts/``); they are plain Python and usable without snakemake.
-:func:`run_stage` serves every per-item stage of :mod:`surffin.stages`: it
+:func:`run_stage` serves every per-item stage of :mod:`surffin.method.stages`: it
 opens the input stores, runs the stage under the chosen dask scheduler with
 progress in the log, and writes the output store atomically with provenance.
 :func:`run_item` runs an item's whole chain (ingest to features) in one
@@ -11,26 +11,24 @@ process, writing the same stores; :func:`run_items` the chains of a batch of ite
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import os
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 
-import dask
 import numpy as np
-from dask.callbacks import Callback
 
-from surffin import stages
+from surffin.method import stages
 from surffin.errors import StoreError
-from surffin.store import open_store, provenance, write_store
+from surffin.grid import Roi
+from surffin.io.files import write_json
+from surffin.io.store import open_store, provenance, write_store
+from surffin.pipeline.jobs import dask_scheduler, logging_to
 
 __all__ = [
     "STAGES",
-    "logging_to",
-    "dask_scheduler",
     "run_ingest",
     "run_stage",
     "ITEM_CHAIN",
@@ -69,80 +67,6 @@ ITEM_CHAIN = (
 )
 
 
-@contextlib.contextmanager
-def logging_to(path: str | os.PathLike | None) -> Iterator[logging.Logger]:
-    """Send surffin's log records to ``path`` (and stderr) for the duration of a stage."""
-    handlers: list[logging.Handler] = [logging.StreamHandler()]
-    if path is not None:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        handlers.append(logging.FileHandler(path, mode="w"))
-    formatter = logging.Formatter("%(asctime)s %(levelname)s %(message)s")
-    for handler in handlers:
-        handler.setFormatter(formatter)
-        log.addHandler(handler)
-    previous = log.level
-    log.setLevel(logging.INFO)
-    try:
-        yield log
-    except Exception:
-        log.exception("stage failed")
-        raise
-    finally:
-        log.setLevel(previous)
-        for handler in handlers:
-            log.removeHandler(handler)
-            handler.close()
-
-
-class _LogProgress(Callback):
-    """Log the share of dask tasks done, in steps of 10 %."""
-
-    def _start_state(self, dsk, state):
-        self._total = max(1, sum(len(state[key]) for key in ("ready", "waiting", "running")) + len(state["finished"]))
-        self._next = 0.1
-
-    def _posttask(self, key, result, dsk, state, worker_id):
-        done = len(state["finished"]) / self._total
-        if done >= self._next:
-            log.info("progress: %d %% of %d tasks", int(100 * done), self._total)
-            self._next = (int(done * 10) + 1) / 10
-
-
-@contextlib.contextmanager
-def dask_scheduler(scheduler: str | None, threads: int = 1) -> Iterator[None]:
-    """Run dask computations on ``scheduler`` inside the block.
-
-    Parameters
-    ----------
-    scheduler : {"threads", "processes", "synchronous"} or address, optional
-        A ``tcp://...`` (or other) address connects to a running
-        ``dask.distributed`` scheduler; None keeps dask's default.
-    threads : int
-        Workers of the local ``threads`` / ``processes`` schedulers.
-    """
-    if scheduler is None:
-        yield
-    elif "://" in scheduler:
-        from distributed import Client
-
-        with Client(scheduler):
-            yield
-    else:
-        from dask.base import named_schedulers
-
-        if scheduler not in named_schedulers:
-            raise ValueError(
-                f"unknown dask scheduler {scheduler!r}: expected threads, processes, synchronous or the "
-                "address of a dask.distributed scheduler (e.g. tcp://10.0.0.1:8786)"
-            )
-        # The scheduler's function, not its name, and rechunks by tasks: given a name, or left
-        # to choose a rechunk method, dask imports dask.distributed (0.4 s, in every job) to
-        # look for a client first. Its other method, p2p, needs that client.
-        local = {"scheduler": named_schedulers[scheduler], "num_workers": threads, "array.rechunk.method": "tasks"}
-        with dask.config.set(local), _LogProgress():
-            yield
-
-
 def _timed_write(ds, output, chunks) -> Path:
     start = time.perf_counter()
     path = write_store(ds, output, chunks=chunks)
@@ -156,8 +80,8 @@ def _timed_write(ds, output, chunks) -> Path:
 
 
 def _ingest(campaign, item, store, chunks) -> Path:
-    from surffin.campaign import read_campaign
-    from surffin.ingest import ingest_item
+    from surffin.io.campaign import read_campaign
+    from surffin.io.ingest import ingest_item
 
     start = time.perf_counter()
     camp = read_campaign(campaign, require_calibration=False, check_views=False)
@@ -359,10 +283,10 @@ def run_calibration(
     ``folders`` (``{"wall", "reference"}``, relative to the campaign directory)
     fits another calibration set of the same camera instead of the campaign's
     ``calibration:`` section, e.g. a repeat set
-    (:func:`surffin.calibration.calibration_set`).
+    (:func:`surffin.method.calibration.calibration_set`).
     """
-    from surffin.calibration import calibrate, calibration_set
-    from surffin.campaign import read_campaign
+    from surffin.method.calibration import calibrate, calibration_set
+    from surffin.io.campaign import read_campaign
 
     params = dict(params or {})
     with logging_to(log_path):
@@ -415,13 +339,13 @@ def run_training(
     extra : tuple of path-like
         Training stores of other campaigns to add.
     max_per_class : int, optional
-        Cap on the samples of each class (:func:`surffin.classify.training_set`).
+        Cap on the samples of each class (:func:`surffin.method.classify.training_set`).
     """
-    from surffin.classify import combine_training, training_set
+    from surffin.method.classify import combine_training, training_set
 
     with logging_to(log_path):
         items = {
-            name: (open_store(spec["store"], stage="features"), spec["class"], stages.as_roi(spec["roi"]))
+            name: (open_store(spec["store"], stage="features"), spec["class"], Roi.from_mapping(spec["roi"]))
             for name, spec in specimens.items()
         }
         ds = training_set(items, max_per_class=max_per_class)
@@ -447,26 +371,11 @@ def _feature_statistics(ds) -> dict:
 
 def _features_region(spec: Mapping):
     """The features store of ``{"store", "roi"}``, lazily, cut to its roi when it has one."""
-    from surffin.features import select_roi
+    from surffin.method.features import select_roi
 
     ds = open_store(spec["store"], stage="features")
-    roi = stages.as_roi(spec["roi"])
+    roi = Roi.from_mapping(spec["roi"])
     return ds if roi is None else select_roi(ds, roi)
-
-
-def _write_text(output: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` to ``output`` atomically, making its folder."""
-    from surffin.viewfile import write_atomically
-
-    output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    write_atomically(output, text.encode())
-    return output
-
-
-def _write_json(output: str | os.PathLike, data) -> Path:
-    """Write ``data`` as indented JSON, atomically."""
-    return _write_text(output, json.dumps(data, indent=2) + "\n")
 
 
 def run_summary(
@@ -489,8 +398,8 @@ def run_summary(
     truth : mapping
         Scene name -> ``{"path": truth.npz, "width": int, "height": int}`` for scenes with truth.
     """
-    from surffin.campaign import read_truth
-    from surffin.classify import class_fractions, score
+    from surffin.io.campaign import read_truth
+    from surffin.method.classify import class_fractions, score
 
     with logging_to(log_path):
         summary = {"items": {}, "scenes": {}}
@@ -509,7 +418,7 @@ def run_summary(
                 scene["accuracy"] = {v: score(ds[v], truth_label, truth_classes, classes) for v in ("label", "label_filtered")}
                 log.info("%s: accuracy %s", name, {v: s["accuracy"] for v, s in scene["accuracy"].items()})
             summary["scenes"][name] = scene
-        return _write_json(output, summary)
+        return write_json(output, summary)
 
 
 def run_roughness_relation(
@@ -530,7 +439,7 @@ def run_roughness_relation(
         Item name -> ``{"store": features store, "roi": {"y", "x"} or None,
         "roughness_mm": float}``; only specimens with a roughness.
     """
-    from surffin.roughness import roughness_relation
+    from surffin.method.roughness import roughness_relation
 
     with logging_to(log_path):
         mean_n, spans = {}, []
@@ -548,7 +457,7 @@ def run_roughness_relation(
             len(specimens), relation["intercept"], relation["slope"], relation["r2"],
         )
         relation["inputs"] = {name: str(spec["store"]) for name, spec in specimens.items()}
-        return _write_json(output, relation)
+        return write_json(output, relation)
 
 
 def run_roughness_map(

@@ -27,7 +27,7 @@ __all__ = [
 ]
 
 #: The repository's configuration file (present in a source checkout).
-DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "config" / "config.yaml"
+DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config" / "config.yaml"
 
 
 def read_config(path: str | os.PathLike = DEFAULT_CONFIG) -> dict:
@@ -77,21 +77,21 @@ def _keywords(config: Mapping, stage: str) -> dict:
 
 
 def calibration_parameters(config: Mapping) -> dict:
-    """Keyword arguments of :func:`surffin.calibration.calibrate`."""
+    """Keyword arguments of :func:`surffin.method.calibration.calibrate`."""
     return _keywords(config, "calibration")
 
 
 def aoi_parameters(config: Mapping) -> dict:
-    """Keyword arguments of :func:`surffin.stages.aoi_stage`."""
+    """Keyword arguments of :func:`surffin.method.stages.aoi_stage`."""
     return _keywords(config, "aoi")
 
 
 def feature_parameters(config: Mapping) -> dict:
-    """Keyword arguments of :func:`surffin.stages.features_stage` (without the item's roi)."""
+    """Keyword arguments of :func:`surffin.method.stages.features_stage` (without the item's roi)."""
     keywords = _keywords(config, "features")
     return keywords | {"min_spread": math.radians(keywords["min_spread"])}
 
 
 def label_parameters(config: Mapping) -> dict:
-    """Keyword arguments of :func:`surffin.stages.labels_stage`."""
+    """Keyword arguments of :func:`surffin.method.stages.labels_stage`."""
     return _keywords(config, "labels")

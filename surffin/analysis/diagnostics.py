@@ -1,6 +1,6 @@
 """Calibration diagnostics as the paper reports them (section 3.3, Table 2), and repeatability.
 
-From a calibration store (:func:`surffin.calibration.calibrate`), over the
+From a calibration store (:func:`surffin.method.calibration.calibrate`), over the
 campaign's crop (the pixels the method uses):
 
 - fit quality: mean R^2 over the fitted pixels (paper 0.98);
@@ -32,7 +32,7 @@ coefficients, of the scale k, of the instrument function f and of the whole
 calibration k f over the observed (d, theta) range, of the reflectance and
 features R0, n of the wall views, and of the specimens' registered
 reflectance and features (each specimen processed with each calibration by
-:func:`surffin.stages.process_item`). Paper: coefficients within 1 %,
+:func:`surffin.method.stages.process_item`). Paper: coefficients within 1 %,
 reflectance 2.9 %, R0 0.5 %, n 1.4 %.
 
 A relative difference is ``(a - b) / ((a + b) / 2)`` per pixel (and view, or
@@ -60,12 +60,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 import xarray as xr
 
-from surffin.calibration import TERMS, _observe, _with_reflectance, calibration_diagnostics, instrument_function
+from surffin.method.calibration import TERMS, _observe, _with_reflectance, calibration_diagnostics, instrument_function
 from surffin.errors import StoreError
-from surffin.scattering import DEFAULT_MIN_SPREAD, fit_scattering
+from surffin.method.scattering import DEFAULT_MIN_SPREAD, fit_scattering
 
 if TYPE_CHECKING:
-    from surffin.campaign import Campaign, Roi
+    from surffin.grid import Roi
+    from surffin.io.campaign import Campaign
 
 __all__ = [
     "PAPER",
@@ -380,10 +381,10 @@ def wall_features(
     """Calibrated reflectance of wall views with each calibration, and R0, n fitted per sensor pixel over them.
 
     Each view is read and its AOI and distance computed on the full sensor
-    (:mod:`surffin.geometry`, as the calibration does), then cropped to the
+    (:mod:`surffin.method.geometry`, as the calibration does), then cropped to the
     campaign's crop. A sensor pixel sees the same uniform wall in every view,
     so its reflectances over the views follow one scattering law, fitted by
-    :func:`surffin.scattering.fit_scattering`.
+    :func:`surffin.method.scattering.fit_scattering`.
 
     Parameters
     ----------
@@ -395,7 +396,7 @@ def wall_features(
     aoi : mapping
         AOI parameters ``window``, ``jump``, ``max_window`` (those of the calibration).
     min_views, min_spread
-        Of :func:`~surffin.scattering.fit_scattering`.
+        Of :func:`~surffin.method.scattering.fit_scattering`.
 
     Returns
     -------
@@ -465,7 +466,7 @@ def process_specimens(
 ) -> dict[str, dict[str, xr.Dataset]]:
     """The :func:`representative_specimens` processed with each calibration, in memory.
 
-    Uses :func:`surffin.stages.process_item`.
+    Uses :func:`surffin.method.stages.process_item`.
 
     Parameters
     ----------
@@ -474,7 +475,7 @@ def process_specimens(
         Name -> calibration.
     params : mapping, optional
         ``method`` (registration) and the stage parameters of
-        :func:`~surffin.stages.process_item` (``window``, ``jump``, ``size``,
+        :func:`~surffin.method.stages.process_item` (``window``, ``jump``, ``size``,
         ``variability_size``, ``min_views``, ``min_spread``).
 
     Returns
@@ -485,9 +486,9 @@ def process_specimens(
         the reference view, the features ``R0``, ``n`` (smoothed) and the
         unsmoothed fits ``R0_fit``, ``n_fit`` (y, x).
     """
-    from surffin.features import select_roi
-    from surffin.ingest import ingest_item
-    from surffin.stages import process_item
+    from surffin.method.features import select_roi
+    from surffin.io.ingest import ingest_item
+    from surffin.method.stages import process_item
 
     params = dict(params or {})
     out = {}
@@ -545,7 +546,7 @@ def plot_correlation(tables: Mapping[str, Mapping], path: str | os.PathLike) -> 
     -------
     Path
     """
-    from surffin.figures import _colormap, _figure, _save
+    from surffin.report.figures import _colormap, _figure, _save
 
     fig = _figure(3.9 * len(tables) + 1.2, 4.6)
     axes = fig.subplots(1, len(tables), squeeze=False)[0]
@@ -572,7 +573,7 @@ def _scatter_panel(ax, title: str, groups: Mapping[str, tuple], names: tuple[str
 
     ``scale`` as in :func:`relative_difference`.
     """
-    from surffin.figures import _subsample
+    from surffin.report.figures import _subsample
 
     x_all = np.concatenate([np.ravel(x) for x, _ in groups.values()])
     y_all = np.concatenate([np.ravel(y) for _, y in groups.values()])
@@ -623,7 +624,7 @@ def plot_repeatability(
     -------
     Path
     """
-    from surffin.figures import _figure, _save
+    from surffin.report.figures import _figure, _save
 
     fig = _figure(15.0, 9.5)
     axes = fig.subplots(2, 3).ravel()
@@ -661,7 +662,7 @@ def _repeat_reason(campaign: Campaign, repeat_folders: Mapping[str, str] | None)
 
 def _wall_sets(campaign: Campaign, calibrations: Mapping[str, xr.Dataset]) -> dict[str, tuple[Path, ...]]:
     """Wall folder (relative) -> view files: the campaign's calibration wall and the calibrations' own walls."""
-    from surffin.viewfile import list_views
+    from surffin.io.viewfile import list_views
 
     sets = {}
     if campaign.calibration is not None:
@@ -676,7 +677,7 @@ def _wall_sets(campaign: Campaign, calibrations: Mapping[str, xr.Dataset]) -> di
 
 def _wall_report(camp: Campaign, calibrations: Mapping[str, xr.Dataset], item_params: Mapping, aoi: Mapping):
     """Feature spread of every wall set with every calibration, and the wall repeatability of two calibrations."""
-    from surffin.ingest import describe_file
+    from surffin.io.ingest import describe_file
 
     spreads, repeatability = [], []
     fit_options = {key: item_params[key] for key in ("min_views", "min_spread") if key in item_params}
@@ -724,7 +725,7 @@ def run_calibration_diagnostics(
         The calibration store.
     repeat : path-like, optional
         A second calibration store of the same camera, fitted to a repeat
-        acquisition (:func:`surffin.pipeline.run_calibration` with
+        acquisition (:func:`surffin.pipeline.run.run_calibration` with
         ``folders``); without it the repeatability part is left out, and the
         JSON (``repeatability.reason``) and the log say why.
     campaign : path-like
@@ -757,11 +758,12 @@ def run_calibration_diagnostics(
         relative differences), ``truth`` (when given) and ``paper``
         (:data:`PAPER`).
     """
-    from surffin.campaign import read_campaign
-    from surffin.figures import _message
-    from surffin.pipeline import check_calibration, logging_to
-    from surffin.store import open_store
-    from surffin.viewfile import write_atomically
+    from surffin.io.campaign import read_campaign
+    from surffin.report.figures import _message
+    from surffin.pipeline.jobs import logging_to
+    from surffin.pipeline.run import check_calibration
+    from surffin.io.store import open_store
+    from surffin.io.files import write_atomically
 
     item_params = dict(item_params or {})
     with logging_to(log_path):

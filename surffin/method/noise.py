@@ -6,7 +6,7 @@ grows as the return weakens (farther, darker, more oblique), so the same finish
 seen from farther off looks rougher. :class:`NoiseStatistics` measures the
 relative noise variance ``var(I) / I^2`` against intensity from the wall views
 the calibration reads anyway; :func:`relative_noise` looks it up per pixel, and
-:func:`surffin.features.variability` subtracts it.
+:func:`surffin.method.features.variability` subtracts it.
 
 Measurement: after the calibration fit, a subset of the wall views is read
 again and flat-fielded, ``q = I / (f(d, theta) cos(theta))`` with the fitted

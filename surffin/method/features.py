@@ -98,7 +98,7 @@ import cv2
 import numpy as np
 import xarray as xr
 
-from surffin.campaign import Roi
+from surffin.grid import Roi
 
 __all__ = [
     "DEFAULT_SIZE",
@@ -428,7 +428,7 @@ def residual_correlation(
     reflectance, aoi : (view, y, x) DataArray
         The registered views the fit was made from (aoi in radians).
     fit : Dataset (y, x)
-        Output of :func:`surffin.scattering.fit_scattering` (``R0``, ``n``,
+        Output of :func:`surffin.method.scattering.fit_scattering` (``R0``, ``n``,
         ``status``, ``n_views``).
     max_lag : int, default 6
         Largest lag, pixels, along y and x.
@@ -443,7 +443,7 @@ def residual_correlation(
     """
     import scipy.fft
 
-    from surffin.scattering import scattering_model
+    from surffin.method.scattering import scattering_model
 
     if isinstance(max_lag, bool) or not isinstance(max_lag, numbers.Integral) or max_lag < 0:
         raise ValueError(f"max_lag must be a non-negative integer (pixels), got {max_lag!r}")
@@ -755,7 +755,7 @@ def features(
     Parameters
     ----------
     fit : Dataset
-        Output of :func:`surffin.scattering.fit_scattering`: ``R0``, ``n``,
+        Output of :func:`surffin.method.scattering.fit_scattering`: ``R0``, ``n``,
         ``R0_sigma``, ``n_sigma`` and the per-pixel quality (y, x).
     variability : (y, x) DataArray
         Output of :func:`variability`, already warped onto the grid of ``fit``.

@@ -9,10 +9,11 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from surffin.campaign import Campaign, Roi
+from surffin.grid import Roi
+from surffin.io.campaign import Campaign
 from surffin.errors import CampaignError
-from surffin.store import provenance
-from surffin.viewfile import View
+from surffin.io.store import provenance
+from surffin.io.viewfile import View
 
 __all__ = ["ingest_item", "build_cube", "describe_file"]
 

@@ -70,13 +70,14 @@ import numpy as np
 import xarray as xr
 
 from surffin.errors import CalibrationError
-from surffin.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW, DEFAULT_WINDOW, _angle_of_incidence
-from surffin.ingest import describe_file
-from surffin.noise import NOISE_VIEWS, NoiseStatistics
-from surffin.store import provenance
+from surffin.method.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW, DEFAULT_WINDOW, _angle_of_incidence
+from surffin.io.ingest import describe_file
+from surffin.method.noise import NOISE_VIEWS, NoiseStatistics
+from surffin.io.store import provenance
 
 if TYPE_CHECKING:
-    from surffin.campaign import Calibration, Campaign, Roi
+    from surffin.grid import Roi
+    from surffin.io.campaign import Calibration, Campaign
 
 __all__ = [
     "TERMS",
@@ -883,8 +884,8 @@ def calibration_set(campaign: Campaign, wall: str, reference: str) -> Calibratio
     ViewFileError
         A view file is broken, or two share a stem.
     """
-    from surffin.campaign import MIN_VIEWS, Calibration, Reference
-    from surffin.viewfile import check_view, list_views
+    from surffin.io.campaign import MIN_VIEWS, Calibration, Reference
+    from surffin.io.viewfile import check_view, list_views
 
     if campaign.calibration is None:
         raise CalibrationError(
@@ -927,10 +928,10 @@ def calibrate(
     """Fit the radiometric calibration of a campaign's camera.
 
     The wall views are read one at a time (AOI and distance on the full sensor
-    by :mod:`surffin.geometry`) and added to :class:`WallStatistics`, so memory
+    by :mod:`surffin.method.geometry`) and added to :class:`WallStatistics`, so memory
     does not grow with their number; then every pixel is fitted
-    (:func:`fit_calibration`), up to :data:`~surffin.noise.NOISE_VIEWS` wall
-    views are read again for the intensity noise model (:mod:`surffin.noise`)
+    (:func:`fit_calibration`), up to :data:`~surffin.method.noise.NOISE_VIEWS` wall
+    views are read again for the intensity noise model (:mod:`surffin.method.noise`)
     and the reference panel views give the scale k (:func:`reference_scale`).
 
     Parameters
@@ -942,7 +943,7 @@ def calibrate(
         e.g. another set of :func:`calibration_set`.
     window, jump, max_window : optional
         AOI plane-fit window (odd, pixels), depth-jump threshold and largest
-        window of :func:`surffin.geometry.angle_of_incidence`.
+        window of :func:`surffin.method.geometry.angle_of_incidence`.
     min_obs : int, optional
         Fewest wall observations of a pixel for a fit.
     angular_smoothing : float, optional
@@ -962,7 +963,7 @@ def calibrate(
         ``wall_obs`` (about 3000 random pixels of the crop over all views) and
         ``wall_image`` (the most perpendicular view), along ``quantity`` =
         :data:`SAMPLE_QUANTITIES`; the wall's intensity noise model
-        (``noise_variance`` per ``noise_intensity``, :mod:`surffin.noise`); attrs ``scale_k``,
+        (``noise_variance`` per ``noise_intensity``, :mod:`surffin.method.noise`); attrs ``scale_k``,
         ``reference_reflectance``, ``reference`` (details of
         :func:`reference_scale`), ``diagnostics``
         (:func:`calibration_diagnostics`), ``campaign``, ``calibration_set``

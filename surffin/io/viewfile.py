@@ -26,8 +26,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import os
-import tempfile
 import zipfile
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -39,6 +37,7 @@ import numpy as np
 import plyfile
 
 from surffin.errors import ViewFileError
+from surffin.io.files import write_atomically
 
 __all__ = [
     "ABCY16_DEFAULT",
@@ -52,7 +51,6 @@ __all__ = [
     "pose_sidecar_path",
     "valid_pixels",
     "npz_headers",
-    "write_atomically",
 ]
 
 ABCY16_DEFAULT = {"scale": 0.25, "offset": (-8192.0, -8192.0, 0.0)}
@@ -473,19 +471,6 @@ def _read_pose_sidecar(sidecar: Path) -> np.ndarray:
 
 def _encode_pose(pose: np.ndarray) -> bytes:
     return "".join(" ".join(f"{value:.17g}" for value in row) + "\n" for row in pose).encode("ascii")
-
-
-def write_atomically(path: Path, content: bytes) -> None:
-    """Write ``content`` to a hidden temporary file beside ``path``, then rename it into place."""
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(handle, "wb") as stream:
-            stream.write(content)
-        os.chmod(temporary, 0o644)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
 
 
 # --- npz -------------------------------------------------------------------------------------

@@ -28,13 +28,13 @@ import numpy as np
 import yaml
 
 from surffin.errors import CampaignError, ViewFileError
-from surffin.viewfile import ABCY16_DEFAULT, View, check_view, list_views, npz_headers, read_view
+from surffin.grid import Roi
+from surffin.io.viewfile import ABCY16_DEFAULT, View, check_view, list_views, npz_headers, read_view
 
 __all__ = [
     "CAMPAIGN_FILE",
     "MIN_VIEWS",
     "NAME_PATTERN",
-    "Roi",
     "Camera",
     "Item",
     "Reference",
@@ -53,46 +53,6 @@ _TOP_LEVEL = "(top level)"
 _MERGE_TAG = "tag:yaml.org,2002:merge"
 _SHOW = reprlib.Repr()
 _SHOW.maxstring = _SHOW.maxother = 60
-
-
-@dataclass(frozen=True)
-class Roi:
-    """A rectangle of sensor pixels: half-open row and column ranges.
-
-    Attributes
-    ----------
-    y : (int, int)
-        ``[start, stop)`` sensor rows.
-    x : (int, int)
-        ``[start, stop)`` sensor columns.
-    """
-
-    y: tuple[int, int]
-    x: tuple[int, int]
-
-    @property
-    def slices(self) -> tuple[slice, slice]:
-        """``(rows, columns)`` slices of a (height, width) sensor image."""
-        return slice(*self.y), slice(*self.x)
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        """``(rows, columns)`` in pixels."""
-        return self.y[1] - self.y[0], self.x[1] - self.x[0]
-
-    def clip(self, other: Roi) -> Roi:
-        """The part of this roi inside ``other``.
-
-        Raises
-        ------
-        ValueError
-            The two do not overlap.
-        """
-        y = (max(self.y[0], other.y[0]), min(self.y[1], other.y[1]))
-        x = (max(self.x[0], other.x[0]), min(self.x[1], other.x[1]))
-        if y[0] >= y[1] or x[0] >= x[1]:
-            raise ValueError(f"{self} does not overlap {other}")
-        return Roi(y, x)
 
 
 @dataclass(frozen=True)
@@ -124,7 +84,7 @@ class Camera:
 
     @property
     def view_kwargs(self) -> dict:
-        """Keyword arguments of :func:`~surffin.viewfile.read_view` and ``check_view`` for this camera."""
+        """Keyword arguments of :func:`~surffin.io.viewfile.read_view` and ``check_view`` for this camera."""
         return {"width": self.width, "height": self.height, "units": self.units, "abcy16": self.abcy16}
 
 

@@ -1,7 +1,7 @@
 """The method against the truth of a synthetic campaign, beside what the data allow.
 
 :func:`evaluate_campaign` runs a whole campaign in this process with the
-workflow's parameters (:mod:`surffin.parameters`): the calibration, every item's
+workflow's parameters (:mod:`surffin.pipeline.parameters`): the calibration, every item's
 chain, the training set of its specimens and the scenes' labels; then it scores
 them against the simulator's truth (``<campaign>-truth``). Beside every item's
 features it fits the same data with the true AOI and the true instrument
@@ -20,13 +20,13 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from surffin import parameters
-from surffin.calibration import calibrate, instrument_function, reflectance
-from surffin.campaign import read_campaign, read_truth
-from surffin.classify import score, training_set
-from surffin.ingest import ingest_item
-from surffin.registration import register
-from surffin.stages import features_stage, labels_stage, process_item
+from surffin.pipeline import parameters
+from surffin.method.calibration import calibrate, instrument_function, reflectance
+from surffin.io.campaign import read_campaign, read_truth
+from surffin.method.classify import score, training_set
+from surffin.io.ingest import ingest_item
+from surffin.method.registration import register
+from surffin.method.stages import features_stage, labels_stage, process_item
 
 __all__ = ["interior", "relative_errors", "calibration_error", "evaluate_campaign", "risk_coverage"]
 
@@ -118,7 +118,7 @@ def evaluate_campaign(
     directory : path-like
         A campaign written by :func:`surffin.simulate_campaign`.
     config : mapping
-        The workflow's configuration (:func:`surffin.parameters.read_config`).
+        The workflow's configuration (:func:`surffin.pipeline.parameters.read_config`).
     truth : path-like, optional
         Its truth folder; default ``<directory>-truth``.
     progress : callable, optional

@@ -505,7 +505,7 @@ def registration_maps(
     Parameters
     ----------
     ingest : Dataset
-        An ingest cube (:func:`surffin.ingest.build_cube`): ``xyz`` (view, y,
+        An ingest cube (:func:`surffin.io.ingest.build_cube`): ``xyz`` (view, y,
         x, axis) metres, camera frame, NaN = invalid (the poses method);
         ``intensity`` and ``valid`` (view, y, x) (the homography method);
         ``pose`` (view, row, col) camera-to-world, metres; ``y``/``x`` are

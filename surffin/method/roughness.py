@@ -136,5 +136,5 @@ def roughness_map(n: xr.DataArray, relation: Mapping) -> xr.Dataset:
     }
     extrapolated = ((n < low) | (n > high)) & n.notnull()
     extrapolated.attrs = {"long_name": "n outside the range of n the specimens support (roughness extrapolated)"}
-    attrs = {"comment": "indicative roughness map (surffin.roughness): not a measurement"}
+    attrs = {"comment": "indicative roughness map (surffin.method.roughness): not a measurement"}
     return xr.Dataset({"roughness": roughness.rename(None), "extrapolated": extrapolated.rename(None)}, attrs=attrs)

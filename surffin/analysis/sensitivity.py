@@ -1,6 +1,6 @@
 """Sensitivity of the scattering fit to reflectance and AOI noise (paper section 4, Figs. 11 and 12).
 
-A Monte Carlo of surffin's own per-pixel fit (:func:`surffin.scattering.fit_scattering`,
+A Monte Carlo of surffin's own per-pixel fit (:func:`surffin.method.scattering.fit_scattering`,
 the code that runs on data): every draw of one configuration is one "pixel" of a
 single call. Truth R0 = 1, n = 1 (:data:`TRUTH`); the noise levels are the
 paper's Table 3 (:data:`NOISE_LEVELS`), each noise type applied alone:
@@ -53,7 +53,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from surffin.scattering import fit_scattering, scattering_model
+from surffin.method.scattering import fit_scattering, scattering_model
 
 __all__ = [
     "TRUTH",
@@ -108,7 +108,7 @@ _DEFAULT_DRAWS = 500
 # Standard errors of the std estimate within which the Monte Carlo "agrees" with
 # the linearised prediction (see separation_summary).
 _AGREEMENT_ERRORS = 3.0
-# The resolution of surffin.figures.DPI, without importing that module (and its classifiers).
+# The resolution of surffin.report.figures.DPI, without importing that module (and its classifiers).
 _FIGURE_DPI = 120
 
 
@@ -281,7 +281,7 @@ def draw_fits(theta, noise: str, sigma: float, draws: int, rng: np.random.Genera
     Returns
     -------
     Dataset
-        The output of :func:`~surffin.scattering.fit_scattering` over dimension
+        The output of :func:`~surffin.method.scattering.fit_scattering` over dimension
         ``draw`` (min_views 2, min_spread 0).
     """
     theta = _check_theta(theta)
@@ -402,8 +402,8 @@ def sensitivity_table(draws: int = _DEFAULT_DRAWS, seed: int = 0) -> xr.Dataset:
         "title": "Sensitivity of the scattering fit to reflectance and AOI noise (paper section 4)",
         "truth": dict(TRUTH),
         "seeding": "numpy.random.default_rng([seed, case, noise, level, abscissa]) per configuration",
-        "fit": "surffin.scattering.fit_scattering, min_views 2, min_spread 0; "
-        "failed: status != 0 (surffin.scattering.FIT_STATUS)",
+        "fit": "surffin.method.scattering.fit_scattering, min_views 2, min_spread 0; "
+        "failed: status != 0 (surffin.method.scattering.FIT_STATUS)",
     }
     return table
 
@@ -560,7 +560,7 @@ def _figure(width: float, height: float):
 def _save(fig, path) -> Path:
     import io
 
-    from surffin.viewfile import write_atomically
+    from surffin.io.files import write_atomically
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -735,7 +735,7 @@ OUTPUTS = {
 
 
 def _write_csv(frame: pd.DataFrame, path: Path) -> Path:
-    from surffin.viewfile import write_atomically
+    from surffin.io.files import write_atomically
 
     path.parent.mkdir(parents=True, exist_ok=True)
     write_atomically(path, frame.to_csv(index=False, float_format="%.6g").encode("utf-8"))
@@ -763,8 +763,8 @@ def run_sensitivity(
     dict of str to Path
         The written files by the keys of :data:`OUTPUTS`.
     """
-    from surffin.pipeline import logging_to
-    from surffin.store import provenance, write_store
+    from surffin.pipeline.jobs import logging_to
+    from surffin.io.store import provenance, write_store
 
     draws = _check_count("draws", draws, 2)
     seed = _check_count("seed", seed, 0)

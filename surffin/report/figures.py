@@ -23,7 +23,7 @@ the Agg canvas from any thread or job. Matplotlib is imported only when a
 figure is drawn.
 
 Class colours are the same in every figure: the i-th class of the sorted class
-list (the label order of :mod:`surffin.classify`) takes the i-th colour of
+list (the label order of :mod:`surffin.method.classify`) takes the i-th colour of
 matplotlib's ``tab10`` cycle.
 """
 
@@ -40,11 +40,11 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from surffin.calibration import TERMS, calibration_diagnostics, instrument_function
-from surffin.campaign import Roi
-from surffin.classify import FEATURES, UNCLASSIFIED
-from surffin.features import UNCERTAINTY, select_roi, smooth
-from surffin.scattering import scattering_model
+from surffin.method.calibration import TERMS, calibration_diagnostics, instrument_function
+from surffin.grid import Roi
+from surffin.method.classify import FEATURES, UNCLASSIFIED
+from surffin.method.features import UNCERTAINTY, select_roi, smooth
+from surffin.method.scattering import scattering_model
 
 __all__ = [
     "DPI",
@@ -628,7 +628,7 @@ def plot_roughness(roughness: xr.Dataset, path: str | os.PathLike) -> Path:
     Parameters
     ----------
     roughness : Dataset (y, x)
-        A roughness store (:func:`surffin.stages.roughness_stage`); the relation
+        A roughness store (:func:`surffin.method.stages.roughness_stage`); the relation
         is the one recorded in its parameters.
     path : path-like
 
@@ -783,9 +783,8 @@ def run_figures(
     ValueError
         An unknown kind, or a kind whose inputs are not given.
     """
-    from surffin.pipeline import logging_to
-    from surffin.stages import as_roi
-    from surffin.store import open_store
+    from surffin.pipeline.jobs import logging_to
+    from surffin.io.store import open_store
 
     given = {"calibration": calibration, "training": training, "summary": summary, "features": features,
              "registered": registered, "labels": labels, "ingest": ingest, "roughness": roughness}
@@ -809,7 +808,7 @@ def run_figures(
             "wall_reflectance": lambda path: plot_wall_reflectance(opened["calibration"], path),
             "feature_space": lambda path: plot_feature_space(opened["training"], path),
             "accuracy_table": lambda path: write_table(accuracy_table(opened["summary"]), path),
-            "features": lambda path: plot_features(opened["features"], opened["registered"], path, roi=as_roi(roi)),
+            "features": lambda path: plot_features(opened["features"], opened["registered"], path, roi=Roi.from_mapping(roi)),
             "labels": lambda path: plot_labels(
                 opened["labels"], opened["ingest"], path, scores=opened.get("summary", {}).get("scenes", {}).get(scene)
             ),
