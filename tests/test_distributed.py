@@ -12,6 +12,7 @@ import xarray as xr
 from distributed import Client, LocalCluster, get_task_stream
 
 import surffin
+from surffin.method.stages import aoi_stage, features_stage, reflectance_stage, registration_stage
 from surffin.pipeline.run import run_calibration, run_ingest, run_stage
 
 #: Chunks over the 40 x 60 crop of the tiny camera: neither divides it.
@@ -30,11 +31,11 @@ def campaign(tmp_path_factory):
         store = {stage: processed / stage / f"{item}.zarr" for stage in ("ingest", "aoi", "reflectance", "registered")}
         run_ingest(camp.path, item, store["ingest"], chunks=CHUNKS)
         inputs = {"ingest": store["ingest"]}
-        run_stage("aoi", store["aoi"], stores=inputs, chunks=CHUNKS)
+        run_stage(aoi_stage, store["aoi"], stores=inputs, chunks=CHUNKS)
         inputs["aoi"] = store["aoi"]
-        run_stage("reflectance", store["reflectance"], stores={**inputs, "calibration": calibration}, chunks=CHUNKS)
+        run_stage(reflectance_stage, store["reflectance"], stores={**inputs, "calibration": calibration}, chunks=CHUNKS)
         inputs["reflectance"] = store["reflectance"]
-        run_stage("registration", store["registered"], stores=inputs, params={"roi": roi(camp, item)}, chunks=CHUNKS)
+        run_stage(registration_stage, store["registered"], stores=inputs, params={"roi": roi(camp, item)}, chunks=CHUNKS)
     return camp, processed
 
 
@@ -47,7 +48,7 @@ def cluster():
 
 def roi(camp, item):
     region = camp.items[item].roi
-    return None if region is None else {"y": list(region.y), "x": list(region.x)}
+    return None if region is None else region.as_mapping()
 
 
 @pytest.mark.parametrize("item", ["S1", "T1"])
@@ -56,9 +57,9 @@ def test_features_on_a_cluster_are_identical_to_threads(campaign, cluster, tmp_p
     stores = {name: processed / name / f"{item}.zarr" for name in ("registered", "reflectance", "aoi")}
     params = {"roi": roi(camp, item), "size": 7, "variability_size": 7, "min_views": 2, "min_spread": math.radians(10)}
     common = {"stores": stores, "params": params, "chunks": CHUNKS}
-    threads = run_stage("features", tmp_path / "threads.zarr", scheduler="threads", threads=2, **common)
+    threads = run_stage(features_stage, tmp_path / "threads.zarr", scheduler="threads", threads=2, **common)
     with Client(cluster) as client, get_task_stream(client) as tasks:
-        on_cluster = run_stage("features", tmp_path / "cluster.zarr", scheduler=cluster.scheduler_address, **common)
+        on_cluster = run_stage(features_stage, tmp_path / "cluster.zarr", scheduler=cluster.scheduler_address, **common)
 
     assert tasks.data, "no task ran on the cluster"
     assert {task["worker"] for task in tasks.data} <= set(cluster.scheduler_info["workers"])

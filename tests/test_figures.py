@@ -388,10 +388,8 @@ def test_calibrate_keeps_raw_wall_observations_with_their_reflectance(tmp_path):
 
 
 @pytest.mark.slow
-def test_snakemake_report_holds_every_figure(tmp_path):
-    from test_workflow import complete_run, planned_jobs, snakemake
-
-    done = complete_run(tmp_path)
+def test_snakemake_report_holds_every_figure(tiny_run, snakemake, planned_jobs, tmp_path):
+    done = tiny_run
     figures = done / "processed" / "figures"
     camp = surffin.read_campaign(done / "raw")
     expected = {
@@ -407,9 +405,9 @@ def test_snakemake_report_holds_every_figure(tmp_path):
     summary = json.loads((done / "processed" / "summary.json").read_text())
     accuracy = summary["scenes"]["T1"]["accuracy"]["label_filtered"]["accuracy"]
     assert f"{100 * accuracy:.2f}" in (figures / "accuracy.html").read_text()
-    run = snakemake(done, "--report", str(done / "report.html"))
+    run = snakemake(done, "--report", str(tmp_path / "report.html"))
     assert run.returncode == 0, run.stderr[-3000:]
-    report = (done / "report.html").read_text()
+    report = (tmp_path / "report.html").read_text()
     for name in ("calibration_fit.png", "wall_reflectance.png", "accuracy.html", "feature_space.png",
                  "calibration_repeatability.png", "separation.png", "views.png"):
         assert name in report

@@ -1,20 +1,26 @@
-"""run_item: an item's chain in one call writes what the stage-by-stage calls write; dask schedulers."""
+"""The entry points: the stage table's jobs write what the in-memory chain computes; jobs sharing a process."""
 
+import logging
 import math
 import subprocess
 import sys
+import threading
 
+import dask
+import dask.array
+import numpy as np
 import pytest
 import xarray as xr
 
 import surffin
-from surffin.pipeline.jobs import dask_scheduler
-from surffin.pipeline.run import run_calibration, run_ingest, run_item, run_items, run_stage
+from surffin.method.features import variability
+from surffin.method.stages import ITEM_CHAIN, aoi_stage, process_item
+from surffin.pipeline.jobs import dask_scheduler, logging_to
+from surffin.pipeline.run import run_calibration, run_ingest, run_stage
+from surffin.pipeline.table import STAGES
 
 CHUNKS = {"y": 32, "x": 32}
-STORES = ("ingest", "aoi", "reflectance", "registered", "features")
-AOI = {"window": 9}
-FEATURES = {"size": 5, "variability_size": 7, "min_views": 2, "min_spread": math.radians(10)}
+PARAMS = {"window": 9, "size": 5, "variability_size": 7, "min_views": 2, "min_spread": math.radians(10)}
 
 
 @pytest.fixture(scope="module")
@@ -25,83 +31,98 @@ def campaign(tmp_path_factory):
     return camp, run_calibration(camp.path, root / "calibration.zarr")
 
 
-def stage_by_stage(camp, calibration, item, folder):
-    """The chain as the per-stage rules run it, one call per stage."""
-    store = {name: folder / name / f"{item}.zarr" for name in STORES}
-    run_ingest(camp.path, item, store["ingest"], chunks=CHUNKS)
-    run_stage("aoi", store["aoi"], stores={"ingest": store["ingest"]}, params=AOI, chunks=CHUNKS)
-    inputs = {"ingest": store["ingest"], "aoi": store["aoi"]}
-    run_stage("reflectance", store["reflectance"], stores={**inputs, "calibration": calibration}, chunks=CHUNKS)
-    inputs["reflectance"] = store["reflectance"]
-    run_stage("registration", store["registered"], stores=inputs, chunks=CHUNKS)
-    del inputs["ingest"]
-    run_stage("features", store["features"], stores={"registered": store["registered"], **inputs}, params=FEATURES,
-              chunks=CHUNKS)
-    return store
+def chain_jobs(camp, calibration, item, folder):
+    """An item's chain as the workflow's jobs run it: one run_stage per stage of the table."""
+    stores = {"ingest": run_ingest(camp.path, item, folder / "ingest.zarr", chunks=CHUNKS), "calibration": calibration}
+    roi = camp.items[item].roi
+    for step in ITEM_CHAIN:
+        params = {key: PARAMS[key] for key in step.keywords if key in PARAMS}
+        params |= {"roi": roi.as_mapping()} if "roi" in step.keywords and roi is not None else {}
+        inputs = {name: stores[name] for name in step.inputs}
+        stores[step.output] = run_stage(step.function, folder / f"{step.output}.zarr", stores=inputs, params=params,
+                                        chunks=CHUNKS)
+    return stores
 
 
-def test_run_item_writes_the_stores_of_the_stages(campaign, tmp_path):
+@pytest.mark.parametrize("item", ["S1", "T1"])
+def test_the_jobs_write_what_the_chain_in_memory_computes(campaign, tmp_path, item):
     camp, calibration = campaign
-    expected = stage_by_stage(camp, calibration, "T1", tmp_path / "stages")
-    outputs = {name: tmp_path / "item" / name / "T1.zarr" for name in STORES}
-    log = tmp_path / "item.log"
-    written = run_item(
-        camp.path, "T1", outputs, calibration=calibration, params={"aoi": AOI, "features": FEATURES},
-        chunks=CHUNKS, log_path=log,
-    )
-    assert written == outputs
-    for name in STORES:
-        ours, theirs = xr.open_zarr(outputs[name]).load(), xr.open_zarr(expected[name]).load()
-        assert {k: str(v).replace("/item/", "/") for k, v in ours.attrs.pop("surffin_inputs").items()} == {
-            k: str(v).replace("/stages/", "/") for k, v in theirs.attrs.pop("surffin_inputs").items()
-        }
-        xr.testing.assert_identical(ours, theirs)
-    assert xr.open_zarr(outputs["features"])["R0"].notnull().mean() > 0.5
-    text = log.read_text()
-    for stage in ("ingest", "aoi", "reflectance", "registration", "features", "item T1"):
-        assert f"{stage} done in" in text
+    stores = chain_jobs(camp, calibration, item, tmp_path)
+    ingest = xr.open_zarr(stores["ingest"]).load()
+    in_memory = process_item(ingest, xr.open_zarr(calibration).load(), roi=camp.items[item].roi, **PARAMS)
+    for step in ITEM_CHAIN:
+        written = xr.open_zarr(stores[step.output]).load()
+        xr.testing.assert_allclose(written.drop_attrs(), in_memory[step.output].drop_attrs())
+        assert written.attrs["surffin_stage"] == step.name
+        assert written.attrs["surffin_code_version"] == STAGES[step.name].version
+    assert xr.open_zarr(stores["features"])["R0"].notnull().mean() > 0.5
+    assert xr.open_zarr(stores["ingest"]).attrs["surffin_code_version"] == STAGES["ingest"].version
 
 
-def test_run_items_runs_each_chain_with_its_own_parameters(campaign, tmp_path):
+def test_run_stage_refuses_what_is_no_stage_and_wrong_stores(campaign, tmp_path):
+    camp, _ = campaign
+    ingest = run_ingest(camp.path, "T1", tmp_path / "ingest.zarr", chunks=CHUNKS)
+    with pytest.raises(KeyError, match="variability"):
+        run_stage(variability, tmp_path / "a.zarr", stores={"ingest": ingest})
+    with pytest.raises(ValueError, match=r"stage aoi reads the stores \['ingest'\], got \['aoi'\]"):
+        run_stage(aoi_stage, tmp_path / "a.zarr", stores={"aoi": ingest})
+    assert not (tmp_path / "a.zarr").exists()
+
+
+def test_process_item_names_a_parameter_no_stage_takes(campaign):
     camp, calibration = campaign
-    expected = stage_by_stage(camp, calibration, "S1", tmp_path / "stages")
-    items = {name: {store: tmp_path / "batch" / store / f"{name}.zarr" for store in STORES} for name in ("S1", "T1")}
-    params = {"S1": {"aoi": AOI, "features": FEATURES}, "T1": {"features": {**FEATURES, "size": 3}}}
-    log = tmp_path / "batch.log"
-    assert run_items(camp.path, items, calibration=calibration, params=params, chunks=CHUNKS, log_path=log) == items
-    for name in STORES:
-        ours, theirs = xr.open_zarr(items["S1"][name]).load(), xr.open_zarr(expected[name]).load()
-        del ours.attrs["surffin_inputs"], theirs.attrs["surffin_inputs"]
-        xr.testing.assert_identical(ours, theirs)
-    t1 = {store: xr.open_zarr(items["T1"][store]).attrs["surffin_parameters"] for store in ("aoi", "features")}
-    assert t1["aoi"] == {} and t1["features"]["size"] == 3
-    text = log.read_text()
-    assert all(f"{line} done in" in text for line in ("item S1", "item T1", "batch of 2 items"))
+    with pytest.raises(TypeError, match="smoothing"):
+        process_item(xr.Dataset(), xr.Dataset(), smoothing=3)
 
 
-def test_run_items_refuses_parameters_of_items_it_does_not_run(campaign, tmp_path):
-    camp, calibration = campaign
-    items = {"T1": {store: tmp_path / store / "T1.zarr" for store in STORES}}
-    with pytest.raises(ValueError, match=r"items not in the batch: \['S9'\]"):
-        run_items(camp.path, items, calibration=calibration, params={"S9": {}})
-    assert not any(path.exists() for path in items["T1"].values())
+def test_jobs_in_threads_keep_their_own_log(tmp_path):
+    barrier = threading.Barrier(2)
+
+    def job(name):
+        with logging_to(tmp_path / f"{name}.log") as log:
+            barrier.wait()
+            for step in range(20):
+                log.info("%s step %d", name, step)
+            barrier.wait()
+
+    threads = [threading.Thread(target=job, args=(name,)) for name in ("first", "second")]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    for name, other in (("first", "second"), ("second", "first")):
+        text = (tmp_path / f"{name}.log").read_text()
+        assert text.count(f"{name} step") == 20 and other not in text
+    assert not logging.getLogger("surffin").handlers
 
 
-def test_run_item_names_wrong_outputs_and_stages(campaign, tmp_path):
-    camp, calibration = campaign
-    outputs = {name: tmp_path / name for name in STORES if name != "registered"}
-    with pytest.raises(ValueError, match="registered"):
-        run_item(camp.path, "T1", outputs, calibration=calibration)
-    outputs["registered"] = tmp_path / "registered"
-    with pytest.raises(ValueError, match="smoothing"):
-        run_item(camp.path, "T1", outputs, calibration=calibration, params={"smoothing": {}})
-    assert not any(path.exists() for path in outputs.values())
+def test_jobs_in_threads_share_the_scheduler_and_restore_it(tmp_path):
+    before = dask.config.get("scheduler", None)
+    inside, barrier = [], threading.Barrier(2)
+
+    def job(rows):
+        with dask_scheduler("synchronous"):
+            barrier.wait()
+            inside.append(dask.config.get("scheduler"))
+            inside.append(int(dask.array.ones((rows, 8), chunks=4).sum().compute()))
+            barrier.wait()
+
+    threads = [threading.Thread(target=job, args=(rows,)) for rows in (8, 16)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert sorted(value for value in inside if isinstance(value, int)) == [64, 128]
+    assert [value for value in inside if not isinstance(value, int)] == [dask.local.get_sync] * 2
+    assert dask.config.get("scheduler", None) == before
 
 
 def test_an_unknown_scheduler_name_is_an_error_naming_it():
     with pytest.raises(ValueError, match="unknown dask scheduler 'thread'"):
         with dask_scheduler("thread"):
             pass
+    with dask_scheduler("synchronous"):  # the failure left nothing behind
+        assert np.isfinite(dask.array.ones(4, chunks=2).sum().compute())
 
 
 def test_local_schedulers_never_import_dask_distributed():

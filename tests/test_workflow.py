@@ -25,47 +25,15 @@ DOWNSTREAM = {
 }
 
 
-def snakemake(workdir, *args, config=(), overrides=None, snakefile=REPO / "Snakefile"):
-    """Run snakemake on ``workdir/raw``; ``overrides`` is a nested config mapping given as a file."""
-    configfiles = [str(REPO / "tests" / "data" / "tiny-config.yaml")]
-    if overrides is not None:
-        extra = workdir / "overrides.yaml"
-        extra.write_text(yaml.safe_dump(overrides))
-        configfiles.append(str(extra))
-    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(snakefile), "--directory", str(workdir)]
-    cmd += ["--cores", "2", *args, "--configfiles", *configfiles, "--config"]
-    cmd += [f"campaign={workdir / 'raw'}", f"processed={workdir / 'processed'}", f"logs={workdir / 'logs'}", *config]
-    return subprocess.run(cmd, capture_output=True, text=True, cwd=workdir, timeout=600)
-
-
-def planned_jobs(workdir, *targets, **kwargs):
-    """Rule name -> job count of a dry run (of the default target, or of ``targets``)."""
-    run = snakemake(workdir, "--dry-run", *targets, **kwargs)
-    out = run.stdout + run.stderr
-    assert run.returncode == 0, out
-    if "Nothing to be done" in out:
-        return {}
-    table = out.split("Job stats:", 1)[1]
-    return {rule: int(count) for rule, count in re.findall(r"^(\w+)\s+(\d+)$", table, re.M) if rule != "total"}
-
-
-def complete_run(workdir):
-    surffin.simulate_campaign(workdir / "raw", preset="tiny", seed=0)
-    run = snakemake(workdir)
-    assert run.returncode == 0, run.stderr[-4000:]
-    return workdir
-
-
-@pytest.fixture(scope="module")
-def done(tmp_path_factory):
-    """A complete run on the tiny preset, shared by the read-only tests."""
-    return complete_run(tmp_path_factory.mktemp("wf"))
+@pytest.fixture
+def done(tiny_run):
+    """The session's complete run of the tiny campaign, shared by the read-only tests."""
+    return tiny_run
 
 
 @pytest.fixture
-def fresh(tmp_path):
-    """A complete run of one's own, for tests that change the campaign or config."""
-    return complete_run(tmp_path)
+def fresh(fresh_run):
+    return fresh_run
 
 
 @pytest.mark.slow  # a full snakemake run of the tiny campaign
@@ -138,12 +106,12 @@ def test_every_store_follows_the_contract(done):
 
 
 @pytest.mark.slow  # a full snakemake run of the tiny campaign
-def test_nothing_left_after_a_complete_run(done):
+def test_nothing_left_after_a_complete_run(done, planned_jobs):
     assert planned_jobs(done) == {}
 
 
 @pytest.mark.slow  # a full snakemake run of the tiny campaign
-def test_smoothing_change_reruns_features_and_below_only(done):
+def test_smoothing_change_reruns_features_and_below_only(done, planned_jobs):
     jobs = planned_jobs(done, overrides={"features": {"smoothing": 5}})
     figures = {"item_figures": 5, "classification_figures": 1, "scene_figures": 1}
     assert jobs == {"features": 5, "training": 1, "labels": 1, "summary": 1, "all": 1, **figures, **ROUGHNESS,
@@ -151,7 +119,7 @@ def test_smoothing_change_reruns_features_and_below_only(done):
 
 
 @pytest.mark.slow  # a full snakemake run of the tiny campaign
-def test_aoi_window_change_reruns_from_aoi_down(done):
+def test_aoi_window_change_reruns_from_aoi_down(done, planned_jobs):
     jobs = planned_jobs(done, overrides={"aoi": {"window": 11, "jump": 0.16}})
     downstream = {"aoi", "reflectance", "registration", "features", "training", "labels", "summary", "all"}
     assert set(jobs) == downstream | {"item_figures", "classification_figures", "scene_figures", *ROUGHNESS,
@@ -159,16 +127,16 @@ def test_aoi_window_change_reruns_from_aoi_down(done):
     assert jobs["aoi"] == 5
 
 
+BUMP_LABELS = (
+    "import dataclasses\n"
+    "from surffin.pipeline.table import STAGES\n"
+    "STAGES['labels'] = dataclasses.replace(STAGES['labels'], version=STAGES['labels'].version + 1)"
+)
+
+
 @pytest.mark.slow  # a full snakemake run of the tiny campaign
-def test_code_version_bump_reruns_that_stage(done, tmp_path):
-    copy = tmp_path / "repo"
-    copy.mkdir()
-    for part in ("Snakefile", "workflow", "config"):
-        (shutil.copytree if (REPO / part).is_dir() else shutil.copy)(REPO / part, copy / part)
-    common = copy / "workflow" / "rules" / "common.smk"
-    # one more than whatever the labels stage's version is now
-    common.write_text(re.sub(r'"labels": (\d+),', lambda m: f'"labels": {int(m[1]) + 1},', common.read_text(), count=1))
-    jobs = planned_jobs(done, snakefile=copy / "Snakefile")
+def test_code_version_bump_reruns_that_stage(done, planned_jobs):
+    jobs = planned_jobs(done, prelude=BUMP_LABELS)
     assert jobs == {"labels": 1, "summary": 1, "classification_figures": 1, "scene_figures": 1, "paper_comparison": 1, "all": 1}
 
 
@@ -202,14 +170,14 @@ def specimen_added(raw):
 
 
 @pytest.mark.slow  # a full snakemake run of the tiny campaign
-def test_replacing_one_view_reruns_its_chain_only(fresh):
+def test_replacing_one_view_reruns_its_chain_only(fresh, planned_jobs):
     with view_replaced(fresh / "raw", "S2"):
         jobs = planned_jobs(fresh)
     assert jobs == {**{stage: 1 for stage in ITEM_CHAIN}, **DOWNSTREAM}
 
 
 @pytest.mark.slow  # a full snakemake run of the tiny campaign
-def test_adding_a_specimen_runs_its_chain(fresh):
+def test_adding_a_specimen_runs_its_chain(fresh, planned_jobs):
     with specimen_added(fresh / "raw"):
         jobs = planned_jobs(fresh)
     # the calibration diagnostics reprocess one specimen per class, and S1 stays class S1's
@@ -218,8 +186,8 @@ def test_adding_a_specimen_runs_its_chain(fresh):
     assert jobs == expected
 
 
-def test_unknown_config_key_fails_before_any_job(tmp_path):
-    surffin.simulate_campaign(tmp_path / "raw", preset="tiny", seed=0)
+def test_unknown_config_key_fails_before_any_job(tiny_campaign, tmp_path, snakemake):
+    shutil.copytree(tiny_campaign, tmp_path / "raw")
     run = snakemake(tmp_path, config=["smoothing_sizes=3"])
     assert run.returncode != 0
     assert "smoothing_sizes" in run.stderr + run.stdout
@@ -228,18 +196,18 @@ def test_unknown_config_key_fails_before_any_job(tmp_path):
 
 @pytest.mark.parametrize(
     ("setting", "message"),
-    [("jobs=items", "'items' is not one of ['stage', 'item']"), ("item_batches=-1", "-1 is less than the minimum of 0")],
+    [("item_figures=few", "'few' is not one of ['all', 'scenes', 'none']"), ("scheduler=7", "7 is not of type")],
 )
-def test_bad_jobs_values_fail_before_any_job_naming_the_key(tmp_path, setting, message):
-    surffin.simulate_campaign(tmp_path / "raw", preset="tiny", seed=0)
+def test_bad_config_values_fail_before_any_job_naming_the_key(tiny_campaign, tmp_path, snakemake, setting, message):
+    shutil.copytree(tiny_campaign, tmp_path / "raw")
     run = snakemake(tmp_path, config=[setting])
     assert run.returncode != 0
     assert message in run.stderr + run.stdout and setting.split("=")[0] in run.stderr + run.stdout
     assert not (tmp_path / "processed").exists()
 
 
-def test_bad_campaign_fails_before_any_job_naming_the_file(tmp_path):
-    surffin.simulate_campaign(tmp_path / "raw", preset="tiny", seed=0)
+def test_bad_campaign_fails_before_any_job_naming_the_file(tiny_campaign, tmp_path, snakemake):
+    shutil.copytree(tiny_campaign, tmp_path / "raw")
     yaml_path = tmp_path / "raw" / "campaign.yaml"
     yaml_path.write_text(yaml_path.read_text().replace("specimens:", "specimen:"))
     run = snakemake(tmp_path)
@@ -255,115 +223,51 @@ def test_workflow_files_are_formatted():
     assert run.returncode == 0, run.stdout + run.stderr
 
 
-@pytest.mark.parametrize("config", [(), ("jobs=item", "item_batches=2")], ids=["stage jobs", "batch jobs"])
 @pytest.mark.slow  # a full snakemake run of the tiny campaign
-def test_lint_is_clean(done, config):
-    run = snakemake(done, "--lint", config=config)
+def test_lint_is_clean(done, snakemake):
+    run = snakemake(done, "--lint")
     assert run.returncode == 0, run.stdout + run.stderr
 
 
-# --- config jobs: item ---------------------------------------------------------------------
+# --- a fresh clone: nothing happens when the workflow is read ------------------------------------
 
 
-def normalised(ds, *processed):
-    """``ds`` with any of the ``processed`` folders written as ``PROCESSED`` in its recorded input stores."""
-    folders = "|".join(re.escape(str(folder)) for folder in processed)
-    inputs = {
-        name: re.sub(f"^({folders})/", "PROCESSED/", value) if isinstance(value, str) else value
-        for name, value in ds.attrs["surffin_inputs"].items()
-    }
-    return ds.assign_attrs(surffin_inputs=inputs)
+@pytest.fixture
+def clone(tmp_path):
+    """The workflow's files as a fresh clone has them (no campaign in data/raw), the default campaign tiny."""
+    for part in ("Snakefile", "workflow", "config", "profiles", "data/raw/README.md"):
+        target = tmp_path / part
+        target.parent.mkdir(parents=True, exist_ok=True)
+        (shutil.copytree if (REPO / part).is_dir() else shutil.copy)(REPO / part, target)
+    (tmp_path / "tiny.yaml").write_text(yaml.safe_dump({"default_campaign": {"preset": "tiny", "seed": 0}}))
+    return tmp_path
 
 
-def chain_jobs(done, folder, config):
-    """Run ``done``'s campaign to its features stores in ``folder`` with item jobs (``config``) and
-    ``done``'s calibration; returns the folder, the targets and the config."""
-    shutil.copytree(done / "raw", folder / "raw")
-    items = surffin.read_campaign(done / "raw").items
-    targets = [str(folder / "processed" / "features" / f"{name}.zarr") for name in items]
-    config = [*config, f"calibration_store={done / 'processed' / 'calibration.zarr'}"]
-    run = snakemake(folder, *targets, config=config)
+def in_clone(clone, *args):
+    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", *args, "--configfiles", str(clone / "tiny.yaml")]
+    return subprocess.run(cmd, capture_output=True, text=True, cwd=clone, timeout=600)
+
+
+def written(folder):
+    return sorted(str(path.relative_to(folder)) for path in folder.rglob("*") if ".snakemake" not in path.parts)
+
+
+@pytest.mark.parametrize("args", [("--dry-run",), ("--lint",)], ids=["dry run", "lint"])
+def test_reading_the_workflow_writes_nothing(clone, args):
+    before = written(clone)
+    run = in_clone(clone, *args)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert written(clone) == before
+    if args == ("--dry-run",):
+        assert re.search(r"^default_campaign\s+1$", run.stdout, re.M), run.stdout
+
+
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
+def test_a_fresh_clone_renders_the_default_campaign_and_runs_it(clone):
+    run = in_clone(clone)
     assert run.returncode == 0, run.stderr[-4000:]
-    return folder, targets, config
-
-
-def assert_stores_of_the_stage_jobs(workdir, done, logs):
-    """``workdir``'s chain stores are ``done``'s, and the ``logs`` name each stage of each item."""
-    text = "".join(log.read_text() for log in logs)
-    for name in surffin.read_campaign(done / "raw").items:
-        for stage in ("ingest", "aoi", "reflectance", "registered", "features"):
-            # the item jobs read the calibration of `done`, by its path there
-            ours, theirs = (
-                normalised(xr.open_zarr(folder / stage / f"{name}.zarr"), workdir / "processed", done / "processed")
-                for folder in (workdir / "processed", done / "processed")
-            )
-            xr.testing.assert_identical(ours.load(), theirs.load())
-        assert f"item {name} done in" in text
-    assert all(f"{stage} done in" in text for stage in ("ingest", "aoi", "reflectance", "registration", "features"))
-
-
-@pytest.fixture(scope="module")
-def item_jobs(done, tmp_path_factory):
-    return chain_jobs(done, tmp_path_factory.mktemp("items"), ["jobs=item"])
-
-
-@pytest.fixture(scope="module")
-def batch_jobs(done, tmp_path_factory):
-    # two batches of the specimens by the CRC-32 of their names: S1, S2, S3 | S4; the scene T1 alone
-    return chain_jobs(done, tmp_path_factory.mktemp("batches"), ["jobs=item", "item_batches=2"])
-
-
-@pytest.mark.slow  # a full snakemake run of the tiny campaign
-def test_item_jobs_write_the_stores_of_the_stage_jobs(done, item_jobs):
-    workdir, _, _ = item_jobs
-    assert_stores_of_the_stage_jobs(workdir, done, sorted((workdir / "logs" / "item").glob("*.log")))
-    assert len(list((workdir / "logs" / "item").glob("*.log"))) == 5
-
-
-@pytest.mark.slow  # a full snakemake run of the tiny campaign
-def test_batch_jobs_write_the_stores_of_the_stage_jobs(done, batch_jobs):
-    workdir, _, _ = batch_jobs
-    batches = sorted((workdir / "logs" / "item_batch").glob("*.log"))
-    assert [log.name for log in batches] == ["0.log", "1.log"]
-    assert "batch of 3 items done in" in batches[0].read_text()
-    assert [log.name for log in (workdir / "logs" / "item").glob("*.log")] == ["T1.log"]
-    assert_stores_of_the_stage_jobs(workdir, done, [*batches, workdir / "logs" / "item" / "T1.log"])
-
-
-@pytest.mark.slow  # a full snakemake run of the tiny campaign
-def test_item_jobs_rerun_whole_chains(item_jobs):
-    workdir, targets, config = item_jobs
-    assert planned_jobs(workdir, *targets, config=config) == {}
-    assert planned_jobs(workdir, *targets, config=config, overrides={"features": {"smoothing": 5}}) == {"item": 5}
-    # a view replaced: that item's chain only
-    with view_replaced(workdir / "raw", "S2"):
-        assert planned_jobs(workdir, *targets, config=config) == {"item": 1}
-
-
-@pytest.mark.slow  # a full snakemake run of the tiny campaign
-def test_batch_jobs_rerun_the_batch_of_a_changed_specimen(batch_jobs):
-    workdir, targets, config = batch_jobs
-    assert planned_jobs(workdir, *targets, config=config) == {}
-    for item, batch in (("S2", {"item_batch_0": 1}), ("S4", {"item_batch_1": 1}), ("T1", {"item": 1})):
-        with view_replaced(workdir / "raw", item):
-            assert planned_jobs(workdir, *targets, config=config) == batch
-    # a specimen added, S5: its batch runs (its other specimen with it), no other job
-    with specimen_added(workdir / "raw"):
-        features = str(workdir / "processed" / "features" / "S5.zarr")
-        assert planned_jobs(workdir, *targets, features, config=config) == {"item_batch_1": 1}
-    # three batches, S1, S4 | none | S2, S3: both hold other specimens than before, so both run
-    regrouped = planned_jobs(workdir, *targets, config=[*config, "item_batches=3"])
-    assert regrouped == {"item_batch_0": 1, "item_batch_2": 1}
-
-
-@pytest.mark.slow  # a full snakemake run of the tiny campaign
-def test_switching_to_item_jobs_reruns_every_chain_once(done):
-    jobs = planned_jobs(done, config=["jobs=item"])
-    assert jobs["item"] == 5 and "features" not in jobs and "calibration" not in jobs
-
-
-@pytest.mark.slow  # a full snakemake run of the tiny campaign
-def test_item_figures_of_scenes_only_or_none(item_jobs):
-    workdir, _, config = item_jobs
-    assert planned_jobs(workdir, config=[*config, "item_figures=scenes"])["item_figures"] == 1
-    assert "item_figures" not in planned_jobs(workdir, config=[*config, "item_figures=none"])
+    camp = surffin.read_campaign(clone / "data" / "raw")
+    summary = json.loads((clone / "data" / "processed" / "summary.json").read_text())
+    assert set(summary["items"]) == set(camp.items) and set(summary["scenes"]) == set(camp.scenes)
+    assert (clone / "data" / "processed" / "paper-comparison.md").is_file()
+    assert in_clone(clone, "--dry-run").stdout.count("Nothing to be done") == 1

@@ -107,7 +107,7 @@ def _strings_as_objects(ds: xr.Dataset) -> xr.Dataset:
 
 
 def write_store(
-    ds: xr.Dataset, path: str | os.PathLike, *, chunks: Mapping[str, int] | None = None
+    ds: xr.Dataset, path: str | os.PathLike, *, chunks: Mapping[str, int] | None = None, scheduler=None
 ) -> Path:
     """Write ``ds`` as a zarr v3 store with consolidated metadata, atomically.
 
@@ -120,6 +120,9 @@ def write_store(
     chunks : mapping of str to int, optional
         Chunk sizes per dimension (default :data:`DEFAULT_CHUNKS`); ``view`` is
         always kept whole so that per-pixel fits see all views of a pixel at once.
+    scheduler : callable, optional
+        The dask scheduler that writes it (e.g. ``dask.local.get_sync`` for a
+        Dataset in memory); default: the one configured.
 
     Returns
     -------
@@ -136,7 +139,9 @@ def write_store(
     try:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
-            ds.to_zarr(partial, mode="w-", zarr_format=3, consolidated=True, encoding=_encoding(ds))
+            ds.to_zarr(partial, mode="w-", zarr_format=3, consolidated=True, encoding=_encoding(ds), compute=False).compute(
+                scheduler=scheduler
+            )
         if path.exists():
             retired = path.parent / f".{path.name}{_RETIRED}{uuid.uuid4().hex[:12]}"
             os.replace(path, retired)

@@ -1,13 +1,18 @@
 """The method's stages as pure functions: Datasets in, one Dataset out.
 
 Each stage here is what one workflow rule computes; :mod:`surffin.pipeline.run`
-opens its input stores, calls it and writes its output store, and
-:func:`process_item` chains them in memory (tests, benchmarks, notebooks).
+opens its input stores, calls it and writes its output store. :data:`ITEM_CHAIN`
+is an item's chain from its ingest store to its features (a stage's input
+stores are its positional arguments, its parameters its keyword-only ones);
+:func:`process_item` runs it in memory (tests, benchmarks, notebooks) and the
+stage table (:mod:`surffin.pipeline.table`) builds the workflow's jobs on it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import inspect
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 
 import xarray as xr
 
@@ -35,6 +40,8 @@ __all__ = [
     "features_stage",
     "labels_stage",
     "roughness_stage",
+    "Step",
+    "ITEM_CHAIN",
     "process_item",
 ]
 
@@ -180,17 +187,63 @@ def roughness_stage(features: xr.Dataset, *, relation: Mapping) -> xr.Dataset:
     return ds
 
 
-def process_item(ingest: xr.Dataset, calibration: xr.Dataset, *, roi=None, method: str = "auto", **params) -> dict:
-    """Chain aoi -> reflectance -> registration -> features for one item, in memory.
+@dataclass(frozen=True)
+class Step:
+    """One stage of the item chain: its name, its function and the store it writes."""
+
+    name: str
+    function: Callable[..., xr.Dataset]
+    output: str
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """The input stores: the function's positional arguments, by name."""
+        parameters = inspect.signature(self.function).parameters.values()
+        return tuple(p.name for p in parameters if p.kind is inspect.Parameter.POSITIONAL_OR_KEYWORD)
+
+    @property
+    def keywords(self) -> tuple[str, ...]:
+        """The stage's parameters: the function's keyword-only arguments."""
+        parameters = inspect.signature(self.function).parameters.values()
+        return tuple(p.name for p in parameters if p.kind is inspect.Parameter.KEYWORD_ONLY)
+
+
+#: An item's chain after its ingest (``calibration`` is the campaign's store).
+ITEM_CHAIN = (
+    Step("aoi", aoi_stage, "aoi"),
+    Step("reflectance", reflectance_stage, "reflectance"),
+    Step("registration", registration_stage, "registered"),
+    Step("features", features_stage, "features"),
+)
+
+
+def process_item(ingest: xr.Dataset, calibration: xr.Dataset, **params) -> dict[str, xr.Dataset]:
+    """Run :data:`ITEM_CHAIN` for one item in memory.
+
+    Parameters
+    ----------
+    ingest, calibration : Dataset
+        The item's ingest store and the calibration.
+    **params
+        Keyword parameters of the stages, each given to every stage that takes
+        it (``roi`` to registration and features).
 
     Returns
     -------
-    dict of Dataset
-        ``aoi``, ``reflectance``, ``registered``, ``features`` (features computed).
+    dict of str to Dataset
+        The stores by name: ``aoi``, ``reflectance``, ``registered``,
+        ``features``, each computed.
+
+    Raises
+    ------
+    TypeError
+        A parameter no stage takes.
     """
-    aoi = aoi_stage(ingest, **{key: params[key] for key in ("window", "jump", "max_window") if key in params}).compute()
-    refl = reflectance_stage(ingest, aoi, calibration).compute()
-    registered = registration_stage(ingest, aoi, refl, method=method, roi=roi)
-    feature_params = {key: params[key] for key in ("size", "variability_size", "min_views", "min_spread") if key in params}
-    feats = features_stage(registered, refl, aoi, roi=roi, **feature_params).compute()
-    return {"aoi": aoi, "reflectance": refl, "registered": registered, "features": feats}
+    if unknown := set(params) - {key for step in ITEM_CHAIN for key in step.keywords}:
+        raise TypeError(f"process_item: no stage of the chain takes {sorted(unknown)}")
+    stores = {"ingest": ingest, "calibration": calibration}
+    for step in ITEM_CHAIN:
+        inputs = {name: stores[name] for name in step.inputs}
+        keywords = {key: params[key] for key in step.keywords if key in params}
+        stores[step.output] = step.function(**inputs, **keywords).compute()
+    return {step.output: stores[step.output] for step in ITEM_CHAIN}

@@ -1,6 +1,6 @@
 rule calibration:
     input:
-        views=calibration_views,
+        views=from_plan("calibration_views"),
     output:
         directory(f"{PROCESSED}/calibration.zarr"),
     log:
@@ -8,15 +8,13 @@ rule calibration:
     benchmark:
         f"{LOGS}/benchmarks/calibration.tsv"
     priority: RESULTS_FIRST
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=1500,
     params:
         campaign=str(CAMPAIGN),
-        settings=calibration_settings,
-        stage_params=calibration_parameters(config),
-        code=STAGE_VERSION["calibration"],
-    script:
-        "../scripts/calibration.py"
+        settings=from_plan("calibration_settings"),
+        stage=calibration_parameters(config),
+        code=STAGES["calibration"].version,
+    run:
+        run_calibration(params.campaign, output[0], params=params.stage, log_path=log[0])

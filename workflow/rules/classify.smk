@@ -1,6 +1,6 @@
 rule training:
     input:
-        unpack(specimen_features),
+        unpack(from_plan("specimen_features")),
         extra=config["extra_training"],
     output:
         directory(f"{PROCESSED}/training.zarr"),
@@ -9,18 +9,22 @@ rule training:
     benchmark:
         f"{LOGS}/benchmarks/training.tsv"
     priority: RESULTS_FIRST
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=1000,
     params:
-        specimens=specimen_settings,
+        specimens=from_plan("specimen_settings"),
         extra=config["extra_training"],
         max_per_class=config["classify"]["max_training_samples"],
-        code=STAGE_VERSION["training"],
-    script:
-        "../scripts/training.py"
+        code=STAGES["training"].version,
+    run:
+        run_training(
+            output[0],
+            specimens=params.specimens,
+            extra=tuple(params.extra),
+            max_per_class=params.max_per_class,
+            log_path=log[0],
+        )
 
 
 rule labels:
@@ -34,26 +38,30 @@ rule labels:
     benchmark:
         f"{LOGS}/benchmarks/labels/{{scene}}.tsv"
     priority: RESULTS_FIRST
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=1500,
     params:
-        stage="labels",
-        stage_params=label_parameters(config),
-        chunks=config["chunks"],
-        scheduler=config["scheduler"],
-        code=STAGE_VERSION["labels"],
-    script:
-        "../scripts/stage.py"
+        stage=label_parameters(config),
+        job=STAGE_JOB,
+        code=STAGES["labels"].version,
+    run:
+        run_stage(
+            labels_stage,
+            output[0],
+            stores=dict(input.items()),
+            params=params.stage,
+            **params.job,
+            threads=threads,
+            log_path=log[0],
+        )
 
 
 rule summary:
     input:
-        features=item_stores("features"),
-        labels=expand(f"{PROCESSED}/labels/{{scene}}.zarr", scene=CAMP.scenes),
-        truth=truth_files,
+        features=from_plan("item_features"),
+        labels=from_plan("scene_label_stores"),
+        truth=from_plan("truth_files"),
     output:
         f"{PROCESSED}/summary.json",
     log:
@@ -61,15 +69,13 @@ rule summary:
     benchmark:
         f"{LOGS}/benchmarks/summary.tsv"
     priority: RESULTS_FIRST
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=1000,
     params:
-        features=summary_features,
-        labels={name: f"{PROCESSED}/labels/{name}.zarr" for name in CAMP.scenes},
-        truth=scene_truth,
-        code=STAGE_VERSION["summary"],
-    script:
-        "../scripts/summary.py"
+        features=from_plan("summary_features"),
+        labels=from_plan("scene_labels"),
+        truth=from_plan("scene_truth"),
+        code=STAGES["summary"].version,
+    run:
+        run_summary(output[0], features=params.features, labels=params.labels, truth=params.truth, log_path=log[0])

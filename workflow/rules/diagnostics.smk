@@ -7,26 +7,24 @@ rule calibration_repeat:
         f"{LOGS}/diagnostics/calibration-repeat.log",
     benchmark:
         f"{LOGS}/benchmarks/diagnostics/calibration-repeat.tsv"
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=1500,
     params:
         campaign=str(CAMPAIGN),
         folders=config["calibration_repeat"],
-        settings=calibration_settings,
-        stage_params=rules.calibration.params.stage_params,
-        code=STAGE_VERSION["calibration"],
-    script:
-        "../scripts/calibration_repeat.py"
+        settings=from_plan("calibration_settings"),
+        stage=rules.calibration.params.stage,
+        code=STAGES["calibration"].version,
+    run:
+        run_calibration(params.campaign, output[0], params=params.stage, folders=params.folders, log_path=log[0])
 
 
 rule calibration_diagnostics:
     input:
         calibration=CALIBRATION,
         repeat=repeat_calibration_store,
-        views=diagnostics_views,
+        views=from_plan("diagnostics_views"),
     output:
         json=f"{PROCESSED}/diagnostics/calibration.json",
         correlation=report(
@@ -45,16 +43,23 @@ rule calibration_diagnostics:
         f"{LOGS}/diagnostics/calibration.log",
     benchmark:
         f"{LOGS}/benchmarks/diagnostics/calibration.tsv"
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=2000,
     params:
         campaign=str(CAMPAIGN),
         repeat_folders=config["calibration_repeat"],
-        settings=diagnostics_settings,
-        item_params=diagnostics_item_params,
-        code=STAGE_VERSION["diagnostics"],
-    script:
-        "../scripts/calibration_diagnostics.py"
+        settings=from_plan("diagnostics_settings"),
+        item_params=from_plan("diagnostics_item_parameters"),
+        code=STAGES["diagnostics"].version,
+    run:
+        run_calibration_diagnostics(
+            output.json,
+            calibration=input.calibration,
+            repeat=input.repeat or None,
+            campaign=params.campaign,
+            repeat_folders=params.repeat_folders,
+            item_params=params.item_params,
+            figures_dir=Path(output.correlation).parent,
+            log_path=log[0],
+        )

@@ -1,104 +1,135 @@
+# An item's chain from its view files to its features: one rule per stage of
+# surffin.pipeline.table, each calling one surffin.pipeline.run function. The jobs
+# run in snakemake's own threads (force-use-threads in profiles/default), so a
+# job costs no process start-up and a parameter change reruns only the stages
+# it touches.
+
+
+rule ingest:
+    input:
+        views=from_plan("item_views", "item"),
+    output:
+        directory(stage_output("ingest")),
+    log:
+        f"{LOGS}/ingest/{{item}}.log",
+    benchmark:
+        f"{LOGS}/benchmarks/ingest/{{item}}.tsv"
+    priority: RESULTS_FIRST
+    threads: 1
+    resources:
+        mem_mb=1000,
+    params:
+        campaign=str(CAMPAIGN),
+        settings=from_plan("item_settings", "item"),
+        code=STAGES["ingest"].version,
+    run:
+        run_ingest(params.campaign, wildcards.item, output[0], chunks=config["chunks"], log_path=log[0])
+
+
 rule aoi:
     input:
-        ingest=f"{PROCESSED}/ingest/{{item}}.zarr",
+        **stage_inputs("aoi"),
     output:
-        directory(f"{PROCESSED}/aoi/{{item}}.zarr"),
+        directory(stage_output("aoi")),
     log:
         f"{LOGS}/aoi/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/aoi/{{item}}.tsv"
     priority: RESULTS_FIRST
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=1000,
     params:
-        stage="aoi",
-        stage_params=aoi_params,
-        chunks=config["chunks"],
-        scheduler=config["scheduler"],
-        code=STAGE_VERSION["aoi"],
-    script:
-        "../scripts/stage.py"
+        stage=aoi_parameters(config),
+        job=STAGE_JOB,
+        code=STAGES["aoi"].version,
+    run:
+        run_stage(
+            aoi_stage,
+            output[0],
+            stores=dict(input.items()),
+            params=params.stage,
+            **params.job,
+            threads=threads,
+            log_path=log[0],
+        )
 
 
 rule reflectance:
     input:
-        ingest=f"{PROCESSED}/ingest/{{item}}.zarr",
-        aoi=f"{PROCESSED}/aoi/{{item}}.zarr",
-        calibration=CALIBRATION,
+        **stage_inputs("reflectance"),
     output:
-        directory(f"{PROCESSED}/reflectance/{{item}}.zarr"),
+        directory(stage_output("reflectance")),
     log:
         f"{LOGS}/reflectance/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/reflectance/{{item}}.tsv"
     priority: RESULTS_FIRST
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=1000,
     params:
-        stage="reflectance",
-        stage_params={},
-        chunks=config["chunks"],
-        scheduler=config["scheduler"],
-        code=STAGE_VERSION["reflectance"],
-    script:
-        "../scripts/stage.py"
+        job=STAGE_JOB,
+        code=STAGES["reflectance"].version,
+    run:
+        run_stage(
+            reflectance_stage, output[0], stores=dict(input.items()), **params.job, threads=threads, log_path=log[0]
+        )
 
 
 rule registration:
     input:
-        ingest=f"{PROCESSED}/ingest/{{item}}.zarr",
-        aoi=f"{PROCESSED}/aoi/{{item}}.zarr",
-        reflectance=f"{PROCESSED}/reflectance/{{item}}.zarr",
+        **stage_inputs("registration"),
     output:
-        directory(f"{PROCESSED}/registered/{{item}}.zarr"),
+        directory(stage_output("registration")),
     log:
         f"{LOGS}/registered/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/registered/{{item}}.tsv"
     priority: RESULTS_FIRST
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=1000,
     params:
-        stage="registration",
-        stage_params=registration_params,
-        chunks=config["chunks"],
-        scheduler=config["scheduler"],
-        code=STAGE_VERSION["registration"],
-    script:
-        "../scripts/stage.py"
+        stage=from_plan("registration_parameters", "item"),
+        job=STAGE_JOB,
+        code=STAGES["registration"].version,
+    run:
+        run_stage(
+            registration_stage,
+            output[0],
+            stores=dict(input.items()),
+            params=params.stage,
+            **params.job,
+            threads=threads,
+            log_path=log[0],
+        )
 
 
 rule features:
     input:
-        registered=f"{PROCESSED}/registered/{{item}}.zarr",
-        reflectance=f"{PROCESSED}/reflectance/{{item}}.zarr",
-        aoi=f"{PROCESSED}/aoi/{{item}}.zarr",
+        **stage_inputs("features"),
     output:
-        directory(f"{PROCESSED}/features/{{item}}.zarr"),
+        directory(stage_output("features")),
     log:
         f"{LOGS}/features/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/features/{{item}}.tsv"
     priority: RESULTS_FIRST
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=1000,
     params:
-        stage="features",
-        stage_params=feature_params,
-        chunks=config["chunks"],
-        scheduler=config["scheduler"],
-        code=STAGE_VERSION["features"],
-    script:
-        "../scripts/stage.py"
+        stage=from_plan("feature_parameters", "item"),
+        job=STAGE_JOB,
+        code=STAGES["features"].version,
+    run:
+        run_stage(
+            features_stage,
+            output[0],
+            stores=dict(input.items()),
+            params=params.stage,
+            **params.job,
+            threads=threads,
+            log_path=log[0],
+        )

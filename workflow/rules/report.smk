@@ -36,15 +36,13 @@ rule calibration_figures:
         f"{LOGS}/figures/calibration.log",
     benchmark:
         f"{LOGS}/benchmarks/figures/calibration.tsv"
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=1500,
     params:
-        code=STAGE_VERSION["figures"],
-    script:
-        "../scripts/figures.py"
+        code=STAGES["figures"].version,
+    run:
+        run_figures(dict(output.items()), **dict(input.items()), log_path=log[0])
 
 
 rule classification_figures:
@@ -71,15 +69,13 @@ rule classification_figures:
         f"{LOGS}/figures/classification.log",
     benchmark:
         f"{LOGS}/benchmarks/figures/classification.tsv"
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=1000,
     params:
-        code=STAGE_VERSION["figures"],
-    script:
-        "../scripts/figures.py"
+        code=STAGES["figures"].version,
+    run:
+        run_figures(dict(output.items()), **dict(input.items()), log_path=log[0])
 
 
 rule item_figures:
@@ -97,16 +93,14 @@ rule item_figures:
         f"{LOGS}/figures/features/{{item}}.log",
     benchmark:
         f"{LOGS}/benchmarks/figures/features/{{item}}.tsv"
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=1000,
     params:
-        roi=item_roi,
-        code=STAGE_VERSION["figures"],
-    script:
-        "../scripts/figures.py"
+        roi=from_plan("roi", "item"),
+        code=STAGES["figures"].version,
+    run:
+        run_figures(dict(output.items()), **dict(input.items()), roi=params.roi, log_path=log[0])
 
 
 rule scene_figures:
@@ -125,12 +119,10 @@ rule scene_figures:
         f"{LOGS}/figures/labels/{{scene}}.log",
     benchmark:
         f"{LOGS}/benchmarks/figures/labels/{{scene}}.tsv"
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=1000,
     params:
-        code=STAGE_VERSION["figures"],
-    script:
-        "../scripts/figures.py"
+        code=STAGES["figures"].version,
+    run:
+        run_figures(dict(output.items()), **dict(input.items()), log_path=log[0])

@@ -8,14 +8,22 @@ rule paper_comparison:
         f"{LOGS}/paper-comparison.log",
     benchmark:
         f"{LOGS}/benchmarks/paper-comparison.tsv"
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=500,
     params:
-        specimens=specimens_by_roughness,
+        specimens=from_plan("specimens_by_roughness"),
         runtime=runtime_settings,
-        code=STAGE_VERSION["comparison"],
-    script:
-        "../scripts/paper_comparison.py"
+        code=STAGES["comparison"].version,
+    run:
+        run_paper_comparison(
+            output[0],
+            summary=input.summary,
+            specimens=params.specimens,
+            diagnostics=input.diagnostics,
+            sensitivity=input.sensitivity,
+            slopes=input.slopes,
+            relation=input.get("relation"),
+            runtime=params.runtime,
+            log_path=log[0],
+        )

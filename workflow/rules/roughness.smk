@@ -1,22 +1,20 @@
 rule roughness_relation:
     input:
-        unpack(roughness_features),
+        unpack(from_plan("roughness_features")),
     output:
         f"{PROCESSED}/roughness/relation.json",
     log:
         f"{LOGS}/roughness/relation.log",
     benchmark:
         f"{LOGS}/benchmarks/roughness/relation.tsv"
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=1000,
     params:
-        specimens=roughness_settings,
-        code=STAGE_VERSION["roughness"],
-    script:
-        "../scripts/roughness_relation.py"
+        specimens=from_plan("roughness_settings"),
+        code=STAGES["roughness_relation"].version,
+    run:
+        run_roughness_relation(output[0], specimens=params.specimens, log_path=log[0])
 
 
 rule roughness_map:
@@ -29,17 +27,23 @@ rule roughness_map:
         f"{LOGS}/roughness/{{scene}}.log",
     benchmark:
         f"{LOGS}/benchmarks/roughness/{{scene}}.tsv"
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=1000,
     params:
         chunks=config["chunks"],
         scheduler=config["scheduler"],
-        code=STAGE_VERSION["roughness"],
-    script:
-        "../scripts/roughness_map.py"
+        code=STAGES["roughness"].version,
+    run:
+        run_roughness_map(
+            output[0],
+            features=input.features,
+            relation=input.relation,
+            chunks=params.chunks,
+            scheduler=params.scheduler,
+            threads=threads,
+            log_path=log[0],
+        )
 
 
 rule roughness_figures:
@@ -56,12 +60,10 @@ rule roughness_figures:
         f"{LOGS}/figures/roughness/{{scene}}.log",
     benchmark:
         f"{LOGS}/benchmarks/figures/roughness/{{scene}}.tsv"
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=1000,
     params:
-        code=STAGE_VERSION["figures"],
-    script:
-        "../scripts/figures.py"
+        code=STAGES["figures"].version,
+    run:
+        run_figures(dict(output.items()), **dict(input.items()), log_path=log[0])

@@ -1,9 +1,3 @@
-from surffin.analysis.sensitivity import OUTPUTS as SENSITIVITY_FILES
-
-# run_sensitivity names its files (SENSITIVITY_FILES) in the folder it is given.
-SENSITIVITY = {key: f"{PROCESSED}/sensitivity/{name}" for key, name in SENSITIVITY_FILES.items()}
-
-
 rule sensitivity:
     output:
         table=SENSITIVITY["table"],
@@ -25,14 +19,12 @@ rule sensitivity:
         f"{LOGS}/sensitivity.log",
     benchmark:
         f"{LOGS}/benchmarks/sensitivity.tsv"
-    conda:
-        ENV
     threads: 1
     resources:
         mem_mb=500,
     params:
         draws=config["sensitivity"]["draws"],
         seed=config["sensitivity"]["seed"],
-        code=STAGE_VERSION["sensitivity"],
-    script:
-        "../scripts/sensitivity.py"
+        code=STAGES["sensitivity"].version,
+    run:
+        run_sensitivity(Path(output.store).parent, draws=params.draws, seed=params.seed, log_path=log[0])

@@ -1,0 +1,216 @@
+"""What the workflow's rules need to know about a campaign: its jobs' files, settings and parameters.
+
+A :class:`Plan` joins a validated campaign, the configuration and the stage
+table (:mod:`surffin.pipeline.table`); the input functions of
+``workflow/rules/common.smk`` are one call each into it, so that the logic is
+plain Python, testable without snakemake. Settings returned here go into
+rules' ``params``: a change to one reruns the jobs that read it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from functools import cached_property
+
+from surffin.analysis.diagnostics import representative_specimens
+from surffin.io.campaign import Calibration, Campaign, read_campaign
+from surffin.method.calibration import calibration_set
+from surffin.method.roughness import MIN_SPECIMENS
+from surffin.pipeline.parameters import aoi_parameters, feature_parameters
+from surffin.pipeline.run import check_calibration
+from surffin.pipeline.table import output_path
+
+__all__ = ["Plan"]
+
+@dataclass(frozen=True)
+class Plan:
+    """The workflow's view of one campaign.
+
+    Attributes
+    ----------
+    campaign : Campaign
+        Validated.
+    config : mapping
+        The workflow configuration.
+    repeat : Calibration or None
+        The repeat calibration set, when configured and present.
+    """
+
+    campaign: Campaign
+    config: Mapping
+    repeat: Calibration | None = None
+
+    @classmethod
+    def read(cls, path, config: Mapping) -> Plan:
+        """Read and check the campaign at ``path`` (and ``calibration_store``, the repeat set) for ``config``.
+
+        Raises
+        ------
+        SurffinError
+            The campaign, or the calibration store it is given, is not usable.
+        """
+        camp = read_campaign(path, require_calibration=config["calibration_store"] is None)
+        if config["calibration_store"] is not None:
+            check_calibration(config["calibration_store"], camp)
+        folders = config["calibration_repeat"]
+        present = folders is not None and camp.calibration is not None
+        present = present and all((camp.root / folder).is_dir() for folder in folders.values())
+        return cls(camp, config, calibration_set(camp, folders["wall"], folders["reference"]) if present else None)
+
+    # --- paths -------------------------------------------------------------------------------
+
+    def output(self, stage: str, name: str | None = None) -> str:
+        """A stage's output under the processed folder, for one item or scene (``{item}`` when None)."""
+        return output_path(stage, self.config["processed"], name)
+
+    def outputs(self, stage: str, names) -> list[str]:
+        return [self.output(stage, name) for name in names]
+
+    # --- items -------------------------------------------------------------------------------
+
+    def roi(self, name: str) -> dict | None:
+        roi = self.campaign.items[name].roi
+        return None if roi is None else roi.as_mapping()
+
+    def item_views(self, name: str) -> list[str]:
+        return [str(path) for path in self.campaign.items[name].views]
+
+    def item_settings(self, name: str) -> dict:
+        """What campaign.yaml says about one item and the camera: a change reruns that item."""
+        item, camera = self.campaign.items[name], self.campaign.camera
+        return {
+            "crop": self.campaign.crop.as_mapping(),
+            "camera": {
+                "width": camera.width,
+                "height": camera.height,
+                "units": camera.units,
+                "abcy16": camera.abcy16,
+                "intrinsics": camera.intrinsics,
+            },
+            "reference": item.reference,
+            "class": item.cls,
+        }
+
+    def registration_parameters(self, name: str) -> dict:
+        return {"method": self.config["registration"]["method"], "roi": self.roi(name)}
+
+    def feature_parameters(self, name: str) -> dict:
+        return {"roi": self.roi(name), **feature_parameters(self.config)}
+
+    def features_of(self, names) -> dict[str, str]:
+        return {name: self.output("features", name) for name in names}
+
+    def specimen_features(self) -> dict[str, str]:
+        return self.features_of(self.campaign.specimens)
+
+    def item_features(self) -> list[str]:
+        return self.outputs("features", self.campaign.items)
+
+    def scene_labels(self) -> dict[str, str]:
+        return {name: self.output("labels", name) for name in self.campaign.scenes}
+
+    def scene_label_stores(self) -> list[str]:
+        return list(self.scene_labels().values())
+
+    def truth_files(self) -> list[str]:
+        return [spec["path"] for spec in self.scene_truth().values()]
+
+    def specimen_settings(self) -> dict:
+        return {
+            name: {"store": self.output("features", name), "class": item.cls, "roi": self.roi(name)}
+            for name, item in self.campaign.specimens.items()
+        }
+
+    def summary_features(self) -> dict:
+        return {name: {"store": self.output("features", name), "roi": self.roi(name)} for name in self.campaign.items}
+
+    def scene_truth(self) -> dict:
+        camera = self.campaign.camera
+        return {
+            name: {"path": str(item.truth), "width": camera.width, "height": camera.height}
+            for name, item in self.campaign.scenes.items()
+            if item.truth is not None
+        }
+
+    # --- calibration and its diagnostics -----------------------------------------------------
+
+    def calibration_views(self) -> list[str]:
+        cal = self.campaign.calibration
+        return [str(path) for path in (*cal.wall, *cal.reference.views)]
+
+    def calibration_settings(self) -> dict:
+        ref = self.campaign.calibration.reference
+        return {"reflectance": ref.reflectance, "roi": ref.roi.as_mapping()}
+
+    def repeat_views(self) -> list[str]:
+        return [str(path) for path in (*self.repeat.wall, *self.repeat.reference.views)]
+
+    def diagnostics_views(self) -> list[str]:
+        """The campaign's wall views and the views of the specimens the calibration diagnostics reprocess."""
+        camp = self.campaign
+        wall = () if camp.calibration is None else camp.calibration.wall
+        specimens = [camp.specimens[name] for name in representative_specimens(camp)]
+        return [str(path) for path in (*wall, *(view for item in specimens for view in item.views))]
+
+    def diagnostics_settings(self) -> dict:
+        """The crop and the specimens' rois and reference views: a change reruns the diagnostics."""
+        camp = self.campaign
+        return {
+            "crop": camp.crop.as_mapping(),
+            "specimens": {
+                name: {"roi": self.roi(name), "reference": camp.specimens[name].reference}
+                for name in representative_specimens(camp)
+            },
+        }
+
+    def diagnostics_item_parameters(self) -> dict:
+        """The registration, AOI and feature parameters the diagnostics process the specimens with."""
+        config = self.config
+        return {"method": config["registration"]["method"], **aoi_parameters(config), **feature_parameters(config)}
+
+    # --- roughness, figures, comparison ------------------------------------------------------
+
+    @cached_property
+    def rough_specimens(self) -> list[str]:
+        return [name for name, item in self.campaign.specimens.items() if item.roughness_mm is not None]
+
+    def roughness_features(self) -> dict[str, str]:
+        return self.features_of(self.rough_specimens)
+
+    def roughness_settings(self) -> dict:
+        specimens = self.specimen_settings()
+        return {
+            name: {**specimens[name], "roughness_mm": self.campaign.items[name].roughness_mm}
+            for name in self.rough_specimens
+        }
+
+    def roughness_outputs(self) -> list[str]:
+        """The relation and the scenes' maps and figures, when enough specimens carry a roughness."""
+        if len(self.rough_specimens) < MIN_SPECIMENS:
+            return []
+        processed = self.config["processed"]
+        return [
+            self.output("roughness_relation"),
+            *self.outputs("roughness", self.campaign.scenes),
+            *(f"{processed}/figures/roughness/{scene}.png" for scene in self.campaign.scenes),
+        ]
+
+    def specimens_by_roughness(self) -> list[str]:
+        """Specimen names from the smoothest to the roughest (campaign order where roughness is unknown)."""
+        order = {name: item.roughness_mm for name, item in self.campaign.specimens.items()}
+        return sorted(self.campaign.specimens, key=lambda name: (order[name] is None, order[name] or 0.0))
+
+    def figure_items(self) -> list[str]:
+        """The items whose feature figure is drawn (config ``item_figures``)."""
+        camp = self.campaign
+        return {"all": list(camp.items), "scenes": list(camp.scenes), "none": []}[self.config["item_figures"]]
+
+    def results(self) -> list[str]:
+        """Every item's features, every scene's labels, the summary and the roughness outputs."""
+        return [
+            *self.outputs("features", self.campaign.items),
+            *self.outputs("labels", self.campaign.scenes),
+            self.output("summary"),
+            *self.roughness_outputs(),
+        ]
