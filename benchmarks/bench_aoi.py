@@ -39,7 +39,7 @@ import timeit
 import numpy as np
 from scipy.spatial import cKDTree
 
-from surffin.method.geometry import _angle_of_incidence
+from surffin.method.geometry import frame_angle_of_incidence
 
 HEIGHT, WIDTH = 480, 640
 FX, FY = 565.0, 579.0
@@ -72,7 +72,7 @@ def scene(distance: float = 0.8, tilt: float = 25.0, specimen: bool = True, seed
 
 def error_degrees(xyz: np.ndarray, truth: np.ndarray, support: tuple[int, int]) -> tuple[np.ndarray, float]:
     """aoi - truth (degrees) where the kernel gives an AOI, and the share of pixels without one."""
-    aoi, _ = _angle_of_incidence(xyz, support[0], max_window=support[1])
+    aoi, _ = frame_angle_of_incidence(xyz, support[0], max_window=support[1])
     has = np.isfinite(aoi)
     return np.rad2deg((aoi - truth)[has]), 1.0 - has.mean()
 
@@ -134,7 +134,7 @@ def main() -> None:
     print(" | ".join(header))
     for window, largest in WINDOWS:
         runs = timeit.repeat(
-            lambda: _angle_of_incidence(xyz, window, max_window=largest), number=1, repeat=args.repeat
+            lambda: frame_angle_of_incidence(xyz, window, max_window=largest), number=1, repeat=args.repeat
         )
         seconds = float(np.median(runs))
         reference = kdtree_seconds_per_frame(xyz, window * window, args.subset, max(3, args.repeat // 5))

@@ -43,12 +43,10 @@ from surffin.method.calibration import (
     instrument_function,
     reflectance,
 )
-from surffin.method.geometry import DEFAULT_WINDOW, _angle_of_incidence
+from surffin.method.geometry import DEFAULT_WINDOW, frame_angle_of_incidence
+from surffin.paper import CORRELATION, MEAN_R2, VARIABILITY_PERCENT
 
 DEFAULT_CAMPAIGN = Path("/tmp/clone/data/raw")
-PAPER_R2 = 0.98
-PAPER_VARIABILITY = {"A": 8.94, "B": 3.92, "C": 1.79, "D": 1.38, "E": 4.44}
-PAPER_CD = -0.99
 HELD_OUT = "w050"
 
 
@@ -92,7 +90,7 @@ def stage_times(camp, paths, repeat, sample):
         stats = WallStatistics((camp.camera.height, camp.camera.width))
         for path in paths:
             view, t_read = timed(camp.read_view, path)
-            (aoi, distance), t_aoi = timed(_angle_of_incidence, view.xyz, DEFAULT_WINDOW)
+            (aoi, distance), t_aoi = timed(frame_angle_of_incidence, view.xyz, DEFAULT_WINDOW)
             _, t_add = timed(stats.add, view.intensity, distance, aoi, view.valid)
             reads.append(t_read)
             aois.append(t_aoi)
@@ -126,7 +124,7 @@ def row(label, *cells, width=14):
 def held_out_reflectance(camp, ds, rho_wall):
     (path,) = [path for path in camp.calibration.wall if path.stem == HELD_OUT]
     view = camp.read_view(path)
-    aoi, distance = _angle_of_incidence(view.xyz, DEFAULT_WINDOW)
+    aoi, distance = frame_angle_of_incidence(view.xyz, DEFAULT_WINDOW)
     dims = ("view", "y", "x")
     coords = {"view": [HELD_OUT], "y": np.arange(camp.camera.height), "x": np.arange(camp.camera.width)}
 
@@ -197,17 +195,17 @@ def main() -> None:
     truth_cd = truth_diag["correlation_terms"].index("C"), truth_diag["correlation_terms"].index("D")
     print("\nTable 2: calibration diagnostics (surffin fit, all wall views but the held-out one)\n")
     row("quantity", "paper", "surffin", "truth (E=1)")
-    row("mean R^2", f"{PAPER_R2:.2f}", f"{diagnostics['mean_r2']:.4f}", "")
+    row("mean R^2", f"{MEAN_R2:.2f}", f"{diagnostics['mean_r2']:.4f}", "")
     for term in TERMS:
         row(
             f"variability {term} (std/|mean|, %)",
-            f"{PAPER_VARIABILITY[term]:.2f}",
+            f"{VARIABILITY_PERCENT[term]:.2f}",
             f"{diagnostics['variability_percent'][term]:.2f}",
             f"{truth_diag['variability_percent'][term]:.2f}",
         )
     row(
         "correlation C-D across pixels",
-        f"{PAPER_CD:.2f}",
+        f"{CORRELATION['matrix'][TERMS.index('C')][TERMS.index('D')]:.2f}",
         f"{diagnostics['correlation'][cd[0]][cd[1]]:.3f}",
         f"{truth_diag['correlation'][truth_cd[0]][truth_cd[1]]:.3f}",
     )

@@ -18,7 +18,7 @@ import numpy as np
 import xarray as xr
 from scipy.optimize import curve_fit
 
-from surffin.method.scattering import _fit_scattering, fit_scattering, scattering_model
+from surffin.method.scattering import fit_scattering, fit_scattering_arrays, scattering_model
 
 
 def data(npix, nview=5, seed=0):
@@ -65,7 +65,7 @@ def main():
     r, theta = data(args.pixels)
     rows = []
 
-    t = median_time(lambda: _fit_scattering(r, theta), args.repeat)
+    t = median_time(lambda: fit_scattering_arrays(r, theta), args.repeat)
     rows.append(("surffin kernel, 1 thread", args.pixels, t))
     side = 320
     rc = as_cube(r, side).chunk({"view": -1, "y": 80, "x": -1})

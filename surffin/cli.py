@@ -32,7 +32,7 @@ def _inspect(args: argparse.Namespace) -> int:
 
     ds = open_store(args.store)
     print(ds)
-    for key in ("surffin_version", "surffin_stage", "surffin_parameters", "surffin_inputs"):
+    for key in ("surffin_version", "surffin_stage", "surffin_code_version", "surffin_parameters", "surffin_inputs"):
         if key in ds.attrs:
             print(f"{key}: {json.dumps(ds.attrs[key], indent=2, default=str)}")
     return 0
@@ -54,8 +54,9 @@ def _whole_number(minimum: int):
 
 
 def _sensitivity(args: argparse.Namespace) -> int:
-    from surffin.analysis.sensitivity import THRESHOLD, run_sensitivity, separation_summary, views_slopes
+    from surffin.analysis.sensitivity import THRESHOLD, separation_summary, views_slopes
     from surffin.io.store import open_store
+    from surffin.pipeline.analyses import run_sensitivity
 
     paths = run_sensitivity(args.out, draws=args.draws, seed=args.seed)
     table = open_store(paths["store"], stage="sensitivity").load()

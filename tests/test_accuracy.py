@@ -15,7 +15,7 @@ import pytest
 
 import surffin
 from surffin.analysis.evaluation import evaluate_campaign, risk_coverage
-from surffin.pipeline.parameters import read_config
+from surffin.pipeline import parameters
 from surffin.simulate import PRESETS
 
 pytestmark = pytest.mark.slow
@@ -28,11 +28,21 @@ def _focal(factor: float):
     return dataclasses.replace(TINY, name=f"tiny-f{factor}", camera=camera)
 
 
+def evaluate(directory) -> dict:
+    """:func:`evaluate_campaign` with the workflow's default configuration."""
+    config = parameters.read_config()
+    return evaluate_campaign(
+        directory, calibration_params=parameters.calibration_parameters(config), aoi_params=parameters.aoi_parameters(config),
+        feature_params=parameters.feature_parameters(config), label_params=parameters.label_parameters(config),
+        method=config["registration"]["method"], max_per_class=config["classify"]["max_training_samples"],
+    )
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     directory = tmp_path_factory.mktemp("accuracy") / "tiny"
     surffin.simulate_campaign(directory, TINY, 0)
-    return evaluate_campaign(directory, read_config())
+    return evaluate(directory)
 
 
 def test_features_are_close_to_the_truth_and_to_what_the_data_allow(tiny):
@@ -78,7 +88,7 @@ def test_other_focal_lengths_run_with_the_default_config(tmp_path, factor):
     """No threshold depends on the focal length in pixels: half and double the tiny camera's run end to end."""
     directory = tmp_path / "campaign"
     surffin.simulate_campaign(directory, _focal(factor), 0)
-    result = evaluate_campaign(directory, read_config())
+    result = evaluate(directory)
     # measured (seed 0): R0 0.9 / 2.6 %, n 0.7 / 4.6 % (double / half focal length; at half,
     # a scene specimen is ~8 px wide); scene label 78 / 65 %
     assert result["features"]["R0"] < 0.035 and result["features"]["n"] < 0.06

@@ -16,20 +16,19 @@ import surffin
 from surffin.method.calibration import TERMS, calibration_set, instrument_function
 from surffin.grid import Roi
 from surffin.analysis.diagnostics import (
-    CORRELATION_FIGURE,
-    REPEATABILITY_FIGURE,
     coefficient_statistics,
     compare_calibrations,
     relative_difference,
     representative_specimens,
-    run_calibration_diagnostics,
     spread,
     variability,
     wall_features,
 )
 from surffin.errors import CalibrationError
 from surffin.method.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW
+from surffin.pipeline.analyses import run_calibration_diagnostics
 from surffin.pipeline.run import run_calibration
+from surffin.report.diagnostics import CORRELATION_FIGURE, REPEATABILITY_FIGURE
 from surffin.simulate import PRESETS
 from surffin.simulate.plan import REPEAT_FOLDERS
 from surffin.io.store import open_store

@@ -22,10 +22,10 @@ from surffin.report.figures import (
     plot_labels,
     plot_r2_map,
     plot_wall_reflectance,
-    run_figures,
     write_table,
 )
 from surffin.method.geometry import angle_of_incidence
+from surffin.pipeline.analyses import run_figures
 from surffin.pipeline.run import run_roughness_map
 from surffin.method.roughness import roughness_relation
 from surffin.io.store import write_store

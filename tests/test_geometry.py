@@ -13,9 +13,9 @@ from surffin.method.geometry import (
     DEFAULT_JUMP,
     DEFAULT_MAX_WINDOW,
     DEFAULT_WINDOW,
-    _angle_of_incidence,
-    _plane_normals,
     angle_of_incidence,
+    frame_angle_of_incidence,
+    plane_normals,
 )
 
 FOCAL = 565.0
@@ -107,12 +107,12 @@ def angle_between(a, b):
 def test_analytic_plane_matches_closed_form(polar, azimuth, offset, window):
     normal = [np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), -np.cos(polar)]
     xyz, unit, truth = plane(normal, offset)
-    aoi, distance = _angle_of_incidence(xyz, window)
+    aoi, distance = frame_angle_of_incidence(xyz, window)
     assert np.isfinite(aoi).all()
     # the inverse depth is exactly linear in x/z, y/z: only rounding remains (~1e-12 rad)
     np.testing.assert_allclose(aoi, truth, rtol=0, atol=1e-9)
     np.testing.assert_allclose(distance, np.linalg.norm(xyz, axis=-1), rtol=1e-15)
-    normals = _plane_normals(xyz, window)
+    normals = plane_normals(xyz, window)
     np.testing.assert_allclose(normals, np.broadcast_to(unit, normals.shape), rtol=0, atol=1e-9)
     assert (np.sum(normals * xyz, axis=-1) < 0).all()
 
@@ -133,7 +133,7 @@ def noisy_surface(height=48, width=56, seed=3):
 @pytest.mark.parametrize("window", [3, 7, 15])
 def test_normals_equal_brute_force_regression(window):
     xyz = noisy_surface()
-    normals = _plane_normals(xyz, window)
+    normals = plane_normals(xyz, window)
     rng = np.random.default_rng(window)
     # random pixels, and the corners and borders where the centred window is too empty
     pixels = [*zip(rng.integers(0, 48, 60), rng.integers(0, 56, 60)), (0, 0), (47, 55), (0, 30), (20, 55)]
@@ -158,7 +158,7 @@ def test_far_plane_keeps_float64_precision():
     xyz, _, truth = plane([0.1, -0.2, -1.0], 0.3, height=30, width=60)
     far, _, far_truth = plane([0.1, -0.2, -1.0], 5.0, height=30, width=60)
     xyz[:, 30:], truth[:, 30:] = far[:, 30:], far_truth[:, 30:]
-    aoi, _ = _angle_of_incidence(xyz, 3)
+    aoi, _ = frame_angle_of_incidence(xyz, 3)
     interior = np.isfinite(aoi)
     assert interior.sum() > 0.9 * aoi.size
     np.testing.assert_allclose(aoi[interior], truth[interior], rtol=0, atol=1e-7)
@@ -173,7 +173,7 @@ def test_range_noise_does_not_bias_the_aoi():
     # ray coordinates, which carry no noise, so its least squares fit is unbiased
     tilt, window = np.deg2rad(30.0), 21
     xyz, _, truth = plane([np.sin(tilt), 0.0, -np.cos(tilt)], 0.35 * np.cos(tilt), 480, 640, noise=0.9e-3, seed=1)
-    aoi, _ = _angle_of_incidence(xyz, window)
+    aoi, _ = frame_angle_of_incidence(xyz, window)
     error = np.rad2deg(aoi - truth)
     assert np.isfinite(error).mean() > 0.99
     assert abs(np.nanmedian(error)) < 0.1
@@ -217,7 +217,7 @@ def test_step_is_not_bridged(band, max_window):
     # (1% beyond the 1.0% of an 80 deg slope at this focal length) misses both halves of the step and
     # must catch it over the pair of pixels two apart (3.0% against 3.7%)
     xyz, truth = step_scene(band=band)
-    aoi, _ = _angle_of_incidence(xyz, 15, max_window=max_window)
+    aoi, _ = frame_angle_of_incidence(xyz, 15, max_window=max_window)
     # only the pixels at the step lose their normal: both sides of a clean step, the band otherwise
     lost = np.flatnonzero(np.isnan(aoi).any(axis=0))
     assert list(lost) == ([39, 40] if band is None else [40])
@@ -232,12 +232,12 @@ def test_surface_narrower_than_the_window_gets_no_normal(max_window):
     offset[:, 36:44] -= 0.02
     normal = [0.0, np.sin(np.deg2rad(20.0)), -np.cos(np.deg2rad(20.0))]
     xyz, _, truth = plane(normal, offset, 40, 80)
-    aoi, _ = _angle_of_incidence(xyz, 15, max_window=max_window)
+    aoi, _ = frame_angle_of_incidence(xyz, 15, max_window=max_window)
     assert np.isnan(aoi[:, 36:44]).all()
     assert np.isfinite(aoi[:, :35]).all() and np.isfinite(aoi[:, 45:]).all()
     assert np.nanmax(np.abs(aoi - truth)) < 1e-6
     # without the jump test, the ridge gets the normals of windows bridging it to the board
-    bridged, _ = _angle_of_incidence(xyz, 15, jump=10.0)
+    bridged, _ = frame_angle_of_incidence(xyz, 15, jump=10.0)
     assert np.isfinite(bridged[:, 36:44]).all()
     assert np.max(np.abs(bridged - truth)[:, 36:44]) > np.deg2rad(10.0)
 
@@ -246,7 +246,7 @@ def test_noisy_step_near_edge_as_good_as_interior():
     errors = []
     for seed in range(3):
         xyz, truth = step_scene(noise=0.9e-3, seed=seed)
-        aoi, _ = _angle_of_incidence(xyz, 15)  # the base windows alone: larger ones cannot fit beside the step
+        aoi, _ = frame_angle_of_incidence(xyz, 15)  # the base windows alone: larger ones cannot fit beside the step
         errors.append(np.abs(aoi - truth))
     error = np.stack(errors)
     near = error[:, :, np.r_[33:39, 41:47]]  # within half a window of the step, off the edge columns
@@ -268,7 +268,7 @@ def test_crease_without_depth_jump(max_window):
     xyz = ray * depths.min(axis=0)[..., None]
     seen = np.stack(faces)[depths.argmin(axis=0)]
     truth = np.arccos(np.abs(np.sum(ray * seen, axis=-1)))
-    aoi, _ = _angle_of_incidence(xyz, 15, max_window=max_window)
+    aoi, _ = frame_angle_of_incidence(xyz, 15, max_window=max_window)
     assert np.isfinite(aoi).all()
     # every pixel more than one column off the crease has a window on its own face
     error = np.abs(aoi - truth)
@@ -283,8 +283,8 @@ def test_larger_windows_cut_the_noise_where_the_surface_stays_planar():
     offset[60:180, 80:240] -= 0.02
     normal = [0.0, np.sin(np.deg2rad(30.0)), -np.cos(np.deg2rad(30.0))]
     xyz, _, truth = plane(normal, offset, 240, 320, noise=0.9e-3, seed=3)
-    base, _ = _angle_of_incidence(xyz, 15)
-    grown, _ = _angle_of_incidence(xyz, 15, max_window=120)
+    base, _ = frame_angle_of_incidence(xyz, 15)
+    grown, _ = frame_angle_of_incidence(xyz, 15, max_window=120)
     np.testing.assert_array_equal(np.isnan(grown), np.isnan(base))  # the same pixels get a normal
     error_base, error_grown = np.rad2deg(np.abs(base - truth)), np.rad2deg(np.abs(grown - truth))
     interior = np.zeros(truth.shape, bool)
@@ -301,12 +301,12 @@ def test_depth_jump_does_not_depend_on_the_focal_length(focal):
     # length; a step twice as deep as a 1 % step beyond an 80 deg slope over one pixel is an edge
     tilt = np.deg2rad(60.0)
     xyz, _, truth = plane([np.sin(tilt), 0.0, -np.cos(tilt)], 0.2, 30, 40, focal=focal)
-    aoi, _ = _angle_of_incidence(xyz, 9)
+    aoi, _ = frame_angle_of_incidence(xyz, 9)
     assert np.isfinite(aoi).all()
     offset = np.full((30, 40), 0.5)
     offset[:, 20:] += 2 * 0.5 * (DEFAULT_JUMP + np.tan(np.deg2rad(80.0)) / focal)
     xyz, _, _ = plane([0.0, np.sin(np.deg2rad(20.0)), -np.cos(np.deg2rad(20.0))], offset, 30, 40, focal=focal)
-    aoi, _ = _angle_of_incidence(xyz, 9)
+    aoi, _ = frame_angle_of_incidence(xyz, 9)
     assert np.isnan(aoi[:, 19:21]).all() and np.isfinite(aoi[:, :15]).all()
 
 
@@ -314,7 +314,7 @@ def test_steep_continuous_surface_is_one_surface():
     # a plane at 75 deg AOI: depth changes by ~0.7% per pixel, ~6% across a window; not an edge
     tilt = np.deg2rad(75.0)
     xyz, _, truth = plane([np.sin(tilt), 0.0, -np.cos(tilt)], 0.1, 30, 40)
-    aoi, _ = _angle_of_incidence(xyz, 9)
+    aoi, _ = frame_angle_of_incidence(xyz, 9)
     assert np.ptp(xyz[..., 2]) / xyz[..., 2].min() > 0.2
     assert np.isfinite(aoi).all()
     np.testing.assert_allclose(aoi, truth, rtol=0, atol=1e-6)
@@ -330,7 +330,7 @@ def test_invalid_pixels_are_excluded():
     garbage = rng.choice([np.nan, np.inf, -1.0, 0.0], size=invalid.sum())
     xyz[invalid, 2] = garbage  # NaN, inf, z < 0, z == 0 are all invalid
     xyz[invalid, :2] = 1e3  # would ruin any plane they entered
-    aoi, distance = _angle_of_incidence(xyz, 7)
+    aoi, distance = frame_angle_of_incidence(xyz, 7)
     assert np.isnan(aoi[invalid]).all() and np.isnan(distance[invalid]).all()
     assert np.isfinite(aoi[~invalid]).all()
     np.testing.assert_allclose(aoi[~invalid], truth[~invalid], rtol=0, atol=1e-6)
@@ -350,7 +350,7 @@ def test_window_needs_min_fraction_of_valid_points(count):
     # frame; 5 = ceil(0.5 * 9) valid points are needed
     keep = [(0, 0), (0, 2), (2, 1), (1, 1), (2, 2)][:count]
     cloud, mask, unit = subset(keep)
-    normals = _plane_normals(cloud, 3)
+    normals = plane_normals(cloud, 3)
     assert np.isfinite(normals[mask]).all() == (count == 5)
     assert np.isnan(normals[~mask]).all()
 
@@ -362,7 +362,7 @@ def test_window_needs_min_fraction_of_valid_points(count):
 )
 def test_three_points_define_a_plane_two_or_collinear_do_not(keep, defined):
     cloud, mask, unit = subset(keep)
-    normals = _plane_normals(cloud, 3, min_fraction=0.0)
+    normals = plane_normals(cloud, 3, min_fraction=0.0)
     assert np.isfinite(normals[mask]).all() == defined
     assert np.isnan(normals[~mask]).all()
     if defined:
@@ -372,7 +372,7 @@ def test_three_points_define_a_plane_two_or_collinear_do_not(keep, defined):
 def test_empty_frame_is_all_nan_without_warnings():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        aoi, distance = _angle_of_incidence(np.full((10, 12, 3), np.nan, np.float32), 5)
+        aoi, distance = frame_angle_of_incidence(np.full((10, 12, 3), np.nan, np.float32), 5)
     assert np.isnan(aoi).all() and np.isnan(distance).all()
 
 
@@ -404,10 +404,10 @@ def test_float32_input_equals_float64_input():
     window = 7
     xyz, _, truth = plane([0.2, 0.1, -1.0], 1.0, 240, 320, noise=1e-3)
     single = xyz.astype(np.float32)
-    aoi32, _ = _angle_of_incidence(single, window)
-    aoi64, _ = _angle_of_incidence(single.astype(np.float64), window)
+    aoi32, _ = frame_angle_of_incidence(single, window)
+    aoi64, _ = frame_angle_of_incidence(single.astype(np.float64), window)
     np.testing.assert_array_equal(aoi32, aoi64)
-    aoi, _ = _angle_of_incidence(xyz, window)
+    aoi, _ = frame_angle_of_incidence(xyz, window)
     # what remains is the rounding of the coordinates to float32 (~3e-8 m), not of the sums:
     # ~1e-6 rad, 1e-4 of the noise's effect (most at the border, where windows are smaller)
     difference = np.abs(aoi32 - aoi)
@@ -460,7 +460,7 @@ def test_dataset_layout_and_attributes():
     assert ds.attrs["window"] == 7 and ds.attrs["jump"] == 0.03 and ds.attrs["max_window"] == DEFAULT_MAX_WINDOW
     xr.testing.assert_equal(ds.y, xyz.y)
     assert list(ds.view.values) == ["v0", "v1"]
-    expected, distance = _angle_of_incidence(xyz.values[1], 7, jump=0.03, max_window=DEFAULT_MAX_WINDOW)
+    expected, distance = frame_angle_of_incidence(xyz.values[1], 7, jump=0.03, max_window=DEFAULT_MAX_WINDOW)
     np.testing.assert_allclose(ds.aoi.values[1], expected, atol=2e-7, rtol=0)
     np.testing.assert_allclose(ds.distance.values[1], distance, rtol=1e-7)
     defaults = angle_of_incidence(xyz).attrs

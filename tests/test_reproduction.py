@@ -4,14 +4,14 @@ import json
 
 import pytest
 
-from surffin.analysis.diagnostics import PAPER as CALIBRATION_PAPER
 from surffin.analysis.reproduction import (
     ORIGINS,
-    PAPER,
     comparison,
-    run_paper_comparison,
     to_markdown,
 )
+from surffin.paper import ACCURACY
+from surffin.paper import CALIBRATION as CALIBRATION_PAPER
+from surffin.pipeline.analyses import run_paper_comparison
 from surffin.simulate.presets import PRESETS
 
 
@@ -82,7 +82,7 @@ def every_row(tmp_path):
 def test_rows_carry_the_numbers_of_their_sources(tmp_path):
     rows = by_quantity(every_row(tmp_path))
     assert rows["T1: accuracy of label (unclassified counts as wrong)"]["surffin"] == 0.991
-    assert rows["T1: accuracy of label_filtered (unclassified counts as wrong)"]["paper"] == PAPER["accuracy"]["label_filtered"]
+    assert rows["T1: accuracy of label_filtered (unclassified counts as wrong)"]["paper"] == ACCURACY["label_filtered"]
     assert rows["n falls from the smoothest to the roughest specimen"]["surffin"] == "yes"
     assert rows["specimen of largest mean R0 (paper: rises to S3, drops for S4)"]["surffin"] == "S3"
     assert rows["slope of std against K views, n, reflectance noise 0.04"]["surffin"] == pytest.approx(-0.29)

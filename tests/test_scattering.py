@@ -5,7 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import least_squares
 
-from surffin.method.scattering import FIT_STATUS, _fit_scattering, fit_scattering, scattering_model
+from surffin.method.scattering import FIT_STATUS, fit_scattering, fit_scattering_arrays, scattering_model
 
 
 def noisy_pixels(npix, nview=5, sigma=0.02, seed=0):
@@ -40,7 +40,7 @@ def test_model_closed_forms():
 
 def test_matches_scipy_least_squares():
     r, theta, _, _ = noisy_pixels(150, seed=3)
-    out = _fit_scattering(r, theta)
+    out = fit_scattering_arrays(r, theta)
     assert (out["status"] == 0).all()
     for i in range(r.shape[0]):
         np.testing.assert_allclose([out["R0"][i], out["n"][i]], scipy_fit(r[i], theta[i]), rtol=1e-6)
@@ -48,7 +48,7 @@ def test_matches_scipy_least_squares():
 
 def test_recovers_truth_without_noise():
     r, theta, r0, n = noisy_pixels(500, sigma=0.0, seed=1)
-    out = _fit_scattering(r, theta)
+    out = fit_scattering_arrays(r, theta)
     np.testing.assert_allclose(out["R0"], r0, rtol=1e-8)
     np.testing.assert_allclose(out["n"], n, rtol=1e-8)
     assert out["converged"].all()
@@ -65,7 +65,7 @@ def test_noise_free_fit_is_exact(r0, n, angles):
     theta = np.deg2rad(np.array(angles))
     if np.ptp(theta) < np.deg2rad(10) or np.any((2 - 1 / n) * theta >= 0.99 * np.pi / 2):
         return
-    out = _fit_scattering(scattering_model(theta, r0, n)[None], theta[None])
+    out = fit_scattering_arrays(scattering_model(theta, r0, n)[None], theta[None])
     assert out["status"][0] == 0
     np.testing.assert_allclose([out["R0"][0], out["n"][0]], [r0, n], rtol=1e-6)
 
@@ -75,7 +75,7 @@ def test_uncertainty_matches_scatter_of_repeated_fits():
     npix, sigma = 20000, 0.02
     theta = np.broadcast_to(np.deg2rad(np.linspace(0, 40, 5)), (npix, 5))
     r = scattering_model(theta, 0.8, 1.2) + rng.normal(0, sigma, (npix, 5))
-    out = _fit_scattering(r, theta)
+    out = fit_scattering_arrays(r, theta)
     # the median reported sigma agrees with the empirical spread within 15 %
     assert np.nanmedian(out["n_sigma"]) == pytest.approx(np.nanstd(out["n"]), rel=0.15)
     assert np.nanmedian(out["R0_sigma"]) == pytest.approx(np.nanstd(out["R0"]), rel=0.15)
@@ -84,7 +84,7 @@ def test_uncertainty_matches_scatter_of_repeated_fits():
 def test_status_codes_never_garbage():
     theta = np.deg2rad(np.array([[0, 20, 40], [10, np.nan, np.nan], [20, 21, 22], [0, 20, 40]], float))
     r = np.array([[0.8, 0.75, 0.6], [0.8, 0.7, 0.6], [0.7, 0.7, 0.7], [-0.8, -0.75, -0.6]])
-    out = _fit_scattering(r, theta)
+    out = fit_scattering_arrays(r, theta)
     assert list(out["status"]) == [0, 1, 2, 4]
     assert list(out["n_views"]) == [3, 1, 3, 3]
     for key in ("R0", "n", "R0_sigma", "n_sigma", "rms"):
@@ -94,7 +94,7 @@ def test_status_codes_never_garbage():
 
 def test_two_views_fit_exactly_with_unknown_uncertainty():
     theta = np.deg2rad(np.array([[5.0, 45.0]]))
-    out = _fit_scattering(scattering_model(theta, 0.9, 1.3), theta)
+    out = fit_scattering_arrays(scattering_model(theta, 0.9, 1.3), theta)
     np.testing.assert_allclose([out["R0"][0], out["n"][0]], [0.9, 1.3], rtol=1e-8)
     assert np.isnan(out["n_sigma"][0])
 

@@ -25,12 +25,12 @@ from surffin.analysis.sensitivity import (
     draw_fits,
     jacobian,
     linearised_covariance,
-    run_sensitivity,
     sensitivity_table,
     separation_summary,
     views_slopes,
 )
 from surffin.io.store import open_store
+from surffin.pipeline.analyses import run_sensitivity
 
 DRAWS = 500
 # Band of the statistical checks, in standard errors of the estimate.

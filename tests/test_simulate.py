@@ -1,5 +1,4 @@
 import argparse
-import ast
 import dataclasses
 import filecmp
 from pathlib import Path
@@ -385,65 +384,6 @@ def test_default_presets_write_their_crop_and_first_view_references(noisy):
     assert list(items) == ["S1", "S2", "S3", "S4", "T1"]
     assert not any("reference" in entry for entry in items.values())
     assert all(truth_of(noisy[1], name).attrs["reference_view"] == "v00" for name in items)
-
-
-# --- independence from the method ------------------------------------------------------------
-
-#: Modules of the method: the simulator's truth must not be made by the code it validates.
-METHOD_MODULES = (
-    "surffin.method.calibration",
-    "surffin.method.scattering",
-    "surffin.method.geometry",
-    "surffin.method.features",
-    "surffin.method.classify",
-    "surffin.method.registration",
-    "surffin.method.stages",
-)
-
-
-def imported_modules(path, package):
-    """Every module the import statements of ``path`` name (``from a import b``: a and a.b), relative ones resolved."""
-    names = set()
-    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
-        if isinstance(node, ast.Import):
-            names.update(alias.name for alias in node.names)
-        elif isinstance(node, ast.ImportFrom):
-            parts = package.split(".")
-            base = ".".join(parts[: len(parts) - node.level + 1]) if node.level else ""
-            module = ".".join(part for part in (base, node.module) if part)
-            names.add(module)
-            names.update(f"{module}.{alias.name}" for alias in node.names)
-    return names
-
-
-def method_imports(path, package="surffin.simulate"):
-    return sorted(
-        name
-        for name in imported_modules(path, package)
-        if any(name == module or name.startswith(f"{module}.") for module in METHOD_MODULES)
-    )
-
-
-def test_simulator_imports_no_method_code(tmp_path):
-    folder = Path(surffin.simulate.__file__).parent
-    modules = sorted(folder.glob("*.py"))
-    assert {"instrument.py", "truth.py", "acquire.py", "validation.py"} <= {path.name for path in modules}
-    assert {path.name: method_imports(path) for path in modules if method_imports(path)} == {}
-    # the check sees every form of import, at any depth of the module
-    sample = tmp_path / "sample.py"
-    sample.write_text(
-        "import numpy\nfrom surffin.method import calibration\nfrom ..method.scattering import scattering_model\n"
-        "from .scene import render\ndef f():\n    import surffin.method.geometry as g\n"
-        "if False:\n    from surffin.method.stages import process_item\n"
-    )
-    assert method_imports(sample) == [
-        "surffin.method.calibration",
-        "surffin.method.geometry",
-        "surffin.method.scattering",
-        "surffin.method.scattering.scattering_model",
-        "surffin.method.stages",
-        "surffin.method.stages.process_item",
-    ]
 
 
 # --- design options --------------------------------------------------------------------------

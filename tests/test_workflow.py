@@ -15,6 +15,7 @@ import xarray as xr
 import yaml
 
 import surffin
+from surffin.pipeline.table import STAGES
 
 REPO = Path(__file__).resolve().parents[1]
 ITEM_CHAIN = {"ingest", "aoi", "reflectance", "registration", "features", "item_figures"}
@@ -40,6 +41,11 @@ def fresh(fresh_run):
 def test_every_store_follows_the_contract(done):
     camp = surffin.read_campaign(done / "raw")
     processed = done / "processed"
+    stores = [path for path in processed.rglob("*.zarr") if (path / "zarr.json").is_file()]
+    assert len(stores) == 5 * len(camp.items) + 4 + len(camp.scenes) * 2  # + calibrations, training, sensitivity
+    for path in stores:  # each records the code version the stage table gives its stage
+        attrs = xr.open_zarr(path).attrs
+        assert attrs["surffin_code_version"] == STAGES[attrs["surffin_stage"]].version, path
     cal = xr.open_zarr(processed / "calibration.zarr")
     assert list(cal["term"].values) == ["A", "B", "C", "D", "E"]
     assert cal["coef"].dims == ("term", "y", "x") and cal.sizes["y"] == camp.camera.height

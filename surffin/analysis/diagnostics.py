@@ -46,6 +46,10 @@ say which statistic its numbers are.
 Given the simulator's instrument truth (``<campaign>-truth/instrument.zarr``,
 in the same gauge E = 1), each calibration is compared with it the same way,
 and the truth's own variability and correlation are reported beside.
+
+:func:`calibration_report` gathers all of it for a campaign; the figures are
+drawn by :mod:`surffin.report.diagnostics`, and the workflow's job is
+:func:`surffin.pipeline.analyses.run_calibration_diagnostics`.
 """
 
 from __future__ import annotations
@@ -55,68 +59,50 @@ import logging
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import xarray as xr
 
-from surffin.method.calibration import TERMS, _observe, _with_reflectance, calibration_diagnostics, instrument_function
 from surffin.errors import StoreError
+from surffin.io.files import write_text
+from surffin.method.calibration import (
+    TERMS,
+    calibration_diagnostics,
+    instrument_function,
+    observe_view,
+    with_reflectance,
+)
 from surffin.method.scattering import DEFAULT_MIN_SPREAD, fit_scattering
+from surffin.paper import CALIBRATION as PAPER_CALIBRATION
 
 if TYPE_CHECKING:
     from surffin.grid import Roi
     from surffin.io.campaign import Campaign
 
 __all__ = [
-    "PAPER",
     "variability",
     "spread",
     "relative_difference",
+    "coefficients",
     "coefficient_statistics",
     "observed_grid",
     "compare_calibrations",
     "wall_features",
     "process_specimens",
     "representative_specimens",
-    "plot_correlation",
-    "plot_repeatability",
-    "run_calibration_diagnostics",
-    "CORRELATION_FIGURE",
-    "REPEATABILITY_FIGURE",
+    "CalibrationReport",
+    "calibration_report",
+    "write_report",
 ]
 
 log = logging.getLogger("surffin")
-
-#: What the paper reports (section 3.3, Table 2): mean R^2, variability (%), the correlation matrix
-#: (terms A..E), the spread of R0 and n on the wall, and the repeatability (%) of two calibrations.
-PAPER = {
-    "mean_r2": 0.98,
-    "variability_percent": {"A": 8.94, "B": 3.92, "C": 1.79, "D": 1.38, "E": 4.44},
-    "correlation": {
-        "terms": list(TERMS),
-        "matrix": [
-            [1.0, 0.14, 0.16, -0.12, -0.16],
-            [0.14, 1.0, 0.17, -0.14, -0.46],
-            [0.16, 0.17, 1.0, -0.99, 0.09],
-            [-0.12, -0.14, -0.99, 1.0, -0.13],
-            [-0.16, -0.46, 0.09, -0.13, 1.0],
-        ],
-    },
-    "wall_feature_std": {"R0": 0.005, "n": 0.008},
-    "repeatability_percent": {"coefficients": 1.0, "reflectance": 2.9, "R0": 0.5, "n": 1.4},
-}
 
 # Scale factor of the median absolute deviation to a normal standard deviation.
 _MAD_SIGMA = 1.4826
 # Percentiles of the wall observations' distance and AOI that bound the (d, theta) grid, and its size.
 _GRID_PERCENTILES = (1, 99)
 _GRID_SIZE = 7
-# Most points drawn per scatter panel.
-_MAX_POINTS = 4000
-#: File names of the figures of :func:`run_calibration_diagnostics` in its ``figures_dir``.
-CORRELATION_FIGURE = "calibration_correlation.png"
-REPEATABILITY_FIGURE = "calibration_repeatability.png"
 # Variables of the specimens compared between calibrations.
 _SPECIMEN_VARIABLES = ("reflectance", "R0", "n", "R0_fit", "n_fit")
 
@@ -233,8 +219,21 @@ def relative_difference(a, b, scale: float | None = None) -> dict[str, float | i
     }
 
 
-def _coefficients(ds: xr.Dataset, region: Roi | None) -> np.ndarray:
-    """(5, pixels) coefficients of the region (all pixels of the store when None), row-major."""
+def coefficients(ds: xr.Dataset, region: Roi | None) -> np.ndarray:
+    """The coefficients A..E of a calibration's pixels, as a matrix.
+
+    Parameters
+    ----------
+    ds : Dataset
+        A calibration store, or the simulator's instrument truth (``coef`` (term, y, x)).
+    region : Roi or None
+        Sensor pixels to take; None: all pixels of the store.
+
+    Returns
+    -------
+    (5, pixels) ndarray of float64
+        One row per term, the pixels row-major.
+    """
     coef = ds["coef"].transpose("term", "y", "x")
     if region is not None:
         coef = coef.isel(y=slice(*region.y), x=slice(*region.x))
@@ -265,7 +264,7 @@ def coefficient_statistics(calibration: xr.Dataset, region: Roi | None = None) -
     local = ds if region is None else ds.isel(y=slice(*region.y), x=slice(*region.x))
     table = calibration_diagnostics(local)
     fitted = (local["status"] == 0).values.ravel()
-    spreads = variability(_coefficients(local, None)[:, fitted])
+    spreads = variability(coefficients(local, None)[:, fitted])
     return {
         "fit": {
             **{key: table[key] for key in ("mean_r2", "median_r2", "n_fitted", "n_pixels", "status_counts")},
@@ -319,7 +318,7 @@ def compare_calibrations(first: xr.Dataset, second: xr.Dataset, grid, region: Ro
         calibration: the reflectance of the same data differs as much, with
         the opposite sign).
     """
-    a, b = _coefficients(first, region), _coefficients(second, region)
+    a, b = coefficients(first, region), coefficients(second, region)
     both = np.isfinite(a).all(axis=0) & np.isfinite(b).all(axis=0)
     a, b = a[:, both, None], b[:, both, None]
     ka, kb = float(first.attrs["scale_k"]), float(second.attrs["scale_k"])
@@ -344,7 +343,7 @@ def compare_calibrations(first: xr.Dataset, second: xr.Dataset, grid, region: Ro
 
 def _truth_statistics(truth: xr.Dataset, region: Roi | None) -> dict:
     """Variability and correlation of the true coefficients (gauge E = 1) across the region."""
-    coef = _coefficients(truth, region)
+    coef = coefficients(truth, region)
     varying = [index for index in range(len(TERMS)) if np.std(coef[index]) > 0]
     return {
         "variability_percent": {kind: dict(zip(TERMS, values)) for kind, values in variability(coef).items()},
@@ -414,12 +413,12 @@ def wall_features(
     reflectance = np.empty((len(names), *shape), dtype=np.float32)
     angles = np.empty(shape, dtype=np.float32)
     for index, path in enumerate(views):
-        view = _observe(campaign, path, aoi)
+        view = observe_view(campaign, path, aoi)
         values = np.stack([view.intensity, view.distance, view.aoi])[:, rows, columns]
         values[:, ~view.valid[rows, columns]] = np.nan
         angles[index] = values[2]
         for which, (coef, scale) in enumerate(zip(coefs, scales)):
-            reflectance[which, index] = _with_reflectance(values, coef, scale, axis=0)[3]
+            reflectance[which, index] = with_reflectance(values, coef, scale, axis=0)[3]
     coords = {
         "calibration": names,
         "view": [Path(path).stem for path in views],
@@ -528,124 +527,7 @@ def _specimen_differences(processed: Mapping[str, Mapping[str, xr.Dataset]], fir
     }
 
 
-# --- figures ------------------------------------------------------------------------------------
-
-
-def plot_correlation(tables: Mapping[str, Mapping], path: str | os.PathLike) -> Path:
-    """Heat maps of correlation matrices of the calibration coefficients (paper Table 2), side by side.
-
-    Parameters
-    ----------
-    tables : mapping
-        Panel title -> ``{"terms": [...], "matrix": [[...]]}``; terms absent
-        from a matrix (E in the gauge E = 1) are drawn grey.
-    path : path-like
-        The image to write.
-
-    Returns
-    -------
-    Path
-    """
-    from surffin.report.figures import _colormap, _figure, _save
-
-    fig = _figure(3.9 * len(tables) + 1.2, 4.6)
-    axes = fig.subplots(1, len(tables), squeeze=False)[0]
-    for ax, (title, table) in zip(axes, tables.items()):
-        full = np.full((len(TERMS), len(TERMS)), np.nan)
-        index = [TERMS.index(term) for term in table["terms"]]
-        full[np.ix_(index, index)] = np.asarray(table["matrix"], dtype=np.float64)
-        shown = ax.imshow(full, cmap=_colormap("RdBu_r"), vmin=-1.0, vmax=1.0)
-        for (row, column), value in np.ndenumerate(full):
-            if np.isfinite(value):
-                colour = "white" if abs(value) > 0.6 else "black"
-                ax.text(column, row, f"{value:.2f}", ha="center", va="center", fontsize=9, color=colour)
-        ax.set_xticks(range(len(TERMS)), TERMS)
-        ax.set_yticks(range(len(TERMS)), TERMS)
-        ax.set_title(title, fontsize=10)
-    fig.colorbar(shown, ax=axes, label="correlation across pixels", shrink=0.85)
-    fig.suptitle("Correlation of the calibration coefficients of f = (A + B/d²)(Cθ² + Dθ + E) (paper Table 2; "
-                 "grey: E = 1 does not vary)")
-    return _save(fig, path)
-
-
-def _scatter_panel(ax, title: str, groups: Mapping[str, tuple], names: tuple[str, str], scale=None) -> None:
-    """Second estimates against first of each group (subsampled), a 1:1 line, the pooled median |difference|.
-
-    ``scale`` as in :func:`relative_difference`.
-    """
-    from surffin.report.figures import _subsample
-
-    x_all = np.concatenate([np.ravel(x) for x, _ in groups.values()])
-    y_all = np.concatenate([np.ravel(y) for _, y in groups.values()])
-    for label, (x, y) in groups.items():
-        x, y = np.ravel(x), np.ravel(y)
-        finite = np.flatnonzero(np.isfinite(x) & np.isfinite(y))
-        shown = finite[_subsample(finite.size, _MAX_POINTS // len(groups))]
-        ax.scatter(x[shown], y[shown], s=4, alpha=0.4, label=label)
-    finite = np.isfinite(x_all) & np.isfinite(y_all)
-    if finite.any():
-        low, high = np.percentile(np.concatenate([x_all[finite], y_all[finite]]), (0.5, 99.5))
-        ax.plot([low, high], [low, high], color="red", linewidth=1)
-        ax.set_xlim(low, high)
-        ax.set_ylim(low, high)
-    median = relative_difference(x_all, y_all, scale)["median_abs_percent"]
-    ax.set_title(title if median is None else f"{title}\nmedian |relative difference| {median:.3g} %", fontsize=10)
-    ax.set_xlabel(f"with the {names[0]} calibration")
-    ax.set_ylabel(f"with the {names[1]} calibration")
-    ax.grid(True, alpha=0.3)
-    if len(groups) > 1:
-        ax.legend(fontsize=8, markerscale=3)
-
-
-def plot_repeatability(
-    first: xr.Dataset,
-    second: xr.Dataset,
-    specimens: Mapping[str, Mapping[str, xr.Dataset]],
-    names: tuple[str, str],
-    path: str | os.PathLike,
-    *,
-    region: Roi | None = None,
-) -> Path:
-    """The second calibration's estimates against the first's: coefficients A..D and the specimens' R0, n.
-
-    Parameters
-    ----------
-    first, second : Dataset
-        The two calibrations (``coef``).
-    specimens : mapping
-        Of :func:`process_specimens`, with both calibrations.
-    names : (str, str)
-        Keys of the two calibrations in ``specimens``.
-    path : path-like
-    region : Roi, optional
-        Sensor pixels of the coefficients drawn; default: all.
-
-    Returns
-    -------
-    Path
-    """
-    from surffin.report.figures import _figure, _save
-
-    fig = _figure(15.0, 9.5)
-    axes = fig.subplots(2, 3).ravel()
-    a, b = _coefficients(first, region), _coefficients(second, region)
-    for index, term in enumerate(TERMS[:4]):
-        scale = 0.5 * (np.nanmean(a[index]) + np.nanmean(b[index]))
-        _scatter_panel(axes[index], f"coefficient {term}, per pixel", {"pixels": (a[index], b[index])}, names, scale)
-    for ax, feature in zip(axes[4:], ("R0", "n")):
-        if not specimens:
-            ax.set_axis_off()
-            ax.text(0.5, 0.5, f"no specimens: no {feature} to compare", ha="center", va="center")
-            continue
-        groups = {item: (runs[names[0]][feature].values, runs[names[1]][feature].values)
-                  for item, runs in specimens.items()}
-        _scatter_panel(ax, f"specimens' {feature} (smoothed, roi pixels)", groups, names)
-    fig.suptitle(f"Repeatability: estimates with the {names[1]} calibration against those with the {names[0]} "
-                 f"(red: equal)")
-    return _save(fig, path)
-
-
-# --- entry point ----------------------------------------------------------------------------------
+# --- the whole report -----------------------------------------------------------------------------
 
 
 def _repeat_reason(campaign: Campaign, repeat_folders: Mapping[str, str] | None) -> str:
@@ -703,34 +585,58 @@ def _wall_report(camp: Campaign, calibrations: Mapping[str, xr.Dataset], item_pa
     return spreads, repeatability
 
 
-def run_calibration_diagnostics(
-    output_json: str | os.PathLike,
+class CalibrationReport(NamedTuple):
+    """The calibration diagnostics of a campaign (:func:`calibration_report`) and what their figures draw.
+
+    Attributes
+    ----------
+    report : dict
+        The diagnostics, as written by :func:`write_report`.
+    correlations : dict
+        Panel title -> ``{"terms", "matrix"}``: the correlation matrices of each
+        calibration, of the truth (when given) and of the paper.
+    calibrations : dict of str to Dataset
+        ``first`` and, with a repeat, ``repeat``: the calibrations (``coef``, ``r2``, ``status``, ``wall_obs``).
+    specimens : dict or None
+        :func:`process_specimens` with both calibrations; None without a repeat.
+    region : Roi
+        The sensor pixels covered (the campaign's crop).
+    """
+
+    report: dict
+    correlations: dict
+    calibrations: dict
+    specimens: dict | None
+    region: Roi
+
+
+def calibration_report(
+    camp: Campaign,
     *,
     calibration: str | os.PathLike,
     repeat: str | os.PathLike | None = None,
-    campaign: str | os.PathLike,
     repeat_folders: Mapping[str, str] | None = None,
     item_params: Mapping | None = None,
     instrument_truth: str | os.PathLike | None = None,
-    figures_dir: str | os.PathLike | None = None,
-    log_path: str | os.PathLike | None = None,
-) -> Path:
-    """Write the calibration diagnostics of a campaign as JSON (and figures).
+) -> CalibrationReport:
+    """The calibration diagnostics of a campaign, in memory.
+
+    The workflow's job, which checks the stores against the campaign's camera
+    first and writes the JSON and the figures, is
+    :func:`surffin.pipeline.analyses.run_calibration_diagnostics`.
 
     Parameters
     ----------
-    output_json : path-like
-        Written atomically.
+    camp : Campaign
+        The campaign: its wall views (wall features) and specimens
+        (repeatability of their reflectance and features).
     calibration : path-like
         The calibration store.
     repeat : path-like, optional
         A second calibration store of the same camera, fitted to a repeat
         acquisition (:func:`surffin.pipeline.run.run_calibration` with
         ``folders``); without it the repeatability part is left out, and the
-        JSON (``repeatability.reason``) and the log say why.
-    campaign : path-like
-        The campaign directory: its wall views (wall features) and specimens
-        (repeatability of their reflectance and features).
+        report (``repeatability.reason``) and the log say why.
     repeat_folders : mapping, optional
         The configured ``{"wall", "reference"}`` folders of the repeat set,
         used only to explain a missing ``repeat``.
@@ -740,109 +646,103 @@ def run_calibration_diagnostics(
         serve the wall feature fits.
     instrument_truth : path-like, optional
         The simulator's ``instrument.zarr``: each calibration is compared with it.
-    figures_dir : path-like, optional
-        Folder of ``calibration_correlation.png`` (heat maps: the calibration,
-        the repeat, the truth, the paper) and ``calibration_repeatability.png``
-        (scatter plots, or a note saying why there are none).
-    log_path : path-like, optional
-        The job's log file.
 
     Returns
     -------
-    Path
-        ``output_json``: the sections ``calibrations`` (per store:
+    CalibrationReport
+        Its ``report`` has the sections ``calibrations`` (per store:
         :func:`coefficient_statistics`, ``scale_k``, ``calibration_set``),
         ``wall_features`` (per wall set and calibration: :func:`spread` of R0
         and n, ``views_in_fit``), ``repeatability`` (``available``,
         ``reason``; :func:`compare_calibrations`, ``wall`` and ``specimens``
         relative differences), ``truth`` (when given) and ``paper``
-        (:data:`PAPER`).
+        (:data:`surffin.paper.CALIBRATION`).
     """
-    from surffin.io.campaign import read_campaign
-    from surffin.report.figures import _message
-    from surffin.pipeline.jobs import logging_to
-    from surffin.pipeline.run import check_calibration
     from surffin.io.store import open_store
-    from surffin.io.files import write_atomically
 
     item_params = dict(item_params or {})
-    with logging_to(log_path):
-        camp = read_campaign(campaign, require_calibration=False, check_views=False)
-        stores = {"first": calibration, **({} if repeat is None else {"repeat": repeat})}
-        calibrations = {}
-        for name, path in stores.items():
-            check_calibration(path, camp)
-            ds = open_store(path, stage="calibration")
-            if "wall_obs" not in ds:
-                raise StoreError(f"{path}: the calibration store keeps no wall observations (wall_obs); refit it "
-                                 f"with this surffin")
-            calibrations[name] = ds[["coef", "r2", "status", "wall_obs"]].load()
-        aoi = _calibration_aoi(calibrations["first"], calibration)
-        region = camp.crop
-        report = {
-            "campaign": str(camp.root),
-            "region": {"name": "crop", "y": list(region.y), "x": list(region.x)},
-            "inputs": {name: None if path is None else str(path)
-                       for name, path in (("calibration", calibration), ("repeat", repeat),
-                                          ("instrument_truth", instrument_truth))},
-            "calibrations": {},
+    stores = {"first": calibration, **({} if repeat is None else {"repeat": repeat})}
+    calibrations = {}
+    for name, path in stores.items():
+        ds = open_store(path, stage="calibration")
+        if "wall_obs" not in ds:
+            raise StoreError(f"{path}: the calibration store keeps no wall observations (wall_obs); refit it "
+                             f"with this surffin")
+        calibrations[name] = ds[["coef", "r2", "status", "wall_obs"]].load()
+    aoi = _calibration_aoi(calibrations["first"], calibration)
+    region = camp.crop
+    report = {
+        "campaign": str(camp.root),
+        "region": {"name": "crop", "y": list(region.y), "x": list(region.x)},
+        "inputs": {name: None if path is None else str(path)
+                   for name, path in (("calibration", calibration), ("repeat", repeat),
+                                      ("instrument_truth", instrument_truth))},
+        "calibrations": {},
+    }
+    for name, cal in calibrations.items():
+        stats = coefficient_statistics(cal, region)
+        report["calibrations"][name] = {
+            "store": str(stores[name]),
+            "calibration_set": cal.attrs.get("calibration_set"),
+            "scale_k": float(cal.attrs["scale_k"]),
+            **stats,
         }
-        for name, cal in calibrations.items():
-            stats = coefficient_statistics(cal, region)
-            report["calibrations"][name] = {
-                "store": str(stores[name]),
-                "calibration_set": cal.attrs.get("calibration_set"),
-                "scale_k": float(cal.attrs["scale_k"]),
-                **stats,
-            }
-            log.info("diagnostics: %s: mean R2 %.4f over the crop; variability %% plain %s, robust %s", name,
-                     stats["fit"]["mean_r2"], _plain(stats["variability_percent"]["plain"]),
-                     _plain(stats["variability_percent"]["robust"]))
-        spreads, wall_repeatability = _wall_report(camp, calibrations, item_params, aoi)
-        report["wall_features"] = spreads
-        grid = observed_grid(calibrations["first"])
-        tables = {f"{name} calibration, crop": report["calibrations"][name]["correlation"] for name in calibrations}
-        if instrument_truth is not None:
-            truth = open_store(instrument_truth).load()
-            report["truth"] = {
-                **_truth_statistics(truth, region),
-                **{name: compare_calibrations(cal, truth, grid, region) for name, cal in calibrations.items()},
-            }
-            tables["simulator truth, crop"] = report["truth"]["correlation"]
-        tables["paper Table 2"] = PAPER["correlation"]
-        if repeat is None:
-            reason = _repeat_reason(camp, repeat_folders)
-            log.info("diagnostics: no repeatability: %s", reason)
-            report["repeatability"] = {"available": False, "reason": reason}
-        else:
-            processed = process_specimens(camp, calibrations, item_params)
-            report["repeatability"] = {
-                "available": True,
-                "reason": None,
-                **compare_calibrations(calibrations["first"], calibrations["repeat"], grid, region),
-                "wall": wall_repeatability,
-                "specimens": _specimen_differences(processed, "first", "repeat"),
-            }
-            summary = report["repeatability"]
-            log.info(
-                "diagnostics: repeatability (median |relative difference|, %%): coefficients %s, k f %s, specimens' "
-                "reflectance %s, R0 %s, n %s",
-                {term: _format(value["median_abs_percent"]) for term, value in summary["coefficients"].items()},
-                *(_format(part["median_abs_percent"]) for part in (summary["calibration"], *(
-                    summary["specimens"][name] for name in ("reflectance", "R0", "n")))),
-            )
-        report["paper"] = PAPER
-        if figures_dir is not None:
-            figures = Path(figures_dir)
-            plot_correlation(tables, figures / CORRELATION_FIGURE)
-            if repeat is None:
-                _message(figures / REPEATABILITY_FIGURE, "Repeatability of the calibration",
-                         f"no repeatability: {report['repeatability']['reason']}")
-            else:
-                plot_repeatability(calibrations["first"], calibrations["repeat"], processed, ("first", "repeat"),
-                                   figures / REPEATABILITY_FIGURE, region=region)
-        output = Path(output_json)
-        output.parent.mkdir(parents=True, exist_ok=True)
-        write_atomically(output, (json.dumps(_plain(report), indent=2, allow_nan=False) + "\n").encode())
-        log.info("diagnostics: wrote %s", output)
-        return output
+        log.info("diagnostics: %s: mean R2 %.4f over the crop; variability %% plain %s, robust %s", name,
+                 stats["fit"]["mean_r2"], _plain(stats["variability_percent"]["plain"]),
+                 _plain(stats["variability_percent"]["robust"]))
+    spreads, wall_repeatability = _wall_report(camp, calibrations, item_params, aoi)
+    report["wall_features"] = spreads
+    grid = observed_grid(calibrations["first"])
+    tables = {f"{name} calibration, crop": report["calibrations"][name]["correlation"] for name in calibrations}
+    if instrument_truth is not None:
+        truth = open_store(instrument_truth).load()
+        report["truth"] = {
+            **_truth_statistics(truth, region),
+            **{name: compare_calibrations(cal, truth, grid, region) for name, cal in calibrations.items()},
+        }
+        tables["simulator truth, crop"] = report["truth"]["correlation"]
+    tables["paper Table 2"] = PAPER_CALIBRATION["correlation"]
+    processed = None
+    if repeat is None:
+        reason = _repeat_reason(camp, repeat_folders)
+        log.info("diagnostics: no repeatability: %s", reason)
+        report["repeatability"] = {"available": False, "reason": reason}
+    else:
+        processed = process_specimens(camp, calibrations, item_params)
+        report["repeatability"] = {
+            "available": True,
+            "reason": None,
+            **compare_calibrations(calibrations["first"], calibrations["repeat"], grid, region),
+            "wall": wall_repeatability,
+            "specimens": _specimen_differences(processed, "first", "repeat"),
+        }
+        summary = report["repeatability"]
+        log.info(
+            "diagnostics: repeatability (median |relative difference|, %%): coefficients %s, k f %s, specimens' "
+            "reflectance %s, R0 %s, n %s",
+            {term: _format(value["median_abs_percent"]) for term, value in summary["coefficients"].items()},
+            *(_format(part["median_abs_percent"]) for part in (summary["calibration"], *(
+                summary["specimens"][name] for name in ("reflectance", "R0", "n")))),
+        )
+    report["paper"] = PAPER_CALIBRATION
+    return CalibrationReport(report, tables, calibrations, processed, region)
+
+
+def write_report(report: Mapping, output_json: str | os.PathLike) -> Path:
+    """Write a :func:`calibration_report`'s ``report`` as strict JSON (numpy numbers as Python ones, NaN as null).
+
+    Parameters
+    ----------
+    report : mapping
+        The report.
+    output_json : path-like
+        Written atomically, its folder made.
+
+    Returns
+    -------
+    Path
+        ``output_json``.
+    """
+    output = write_text(output_json, json.dumps(_plain(report), indent=2, allow_nan=False) + "\n")
+    log.info("diagnostics: wrote %s", output)
+    return output

@@ -1,8 +1,8 @@
 """The method against the truth of a synthetic campaign, beside what the data allow.
 
 :func:`evaluate_campaign` runs a whole campaign in this process with the
-workflow's parameters (:mod:`surffin.pipeline.parameters`): the calibration, every item's
-chain, the training set of its specimens and the scenes' labels; then it scores
+stage parameters it is given (the workflow's come from :mod:`surffin.pipeline.parameters`):
+the calibration, every item's chain, the training set of its specimens and the scenes' labels; then it scores
 them against the simulator's truth (``<campaign>-truth``). Beside every item's
 features it fits the same data with the true AOI and the true instrument
 function, registered with the same maps (the ceiling: what the data allow), so
@@ -20,11 +20,10 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from surffin.pipeline import parameters
-from surffin.method.calibration import calibrate, instrument_function, reflectance
 from surffin.io.campaign import read_campaign, read_truth
-from surffin.method.classify import score, training_set
 from surffin.io.ingest import ingest_item
+from surffin.method.calibration import calibrate, instrument_function, reflectance
+from surffin.method.classify import score, training_set
 from surffin.method.registration import register
 from surffin.method.stages import features_stage, labels_stage, process_item
 
@@ -106,19 +105,38 @@ def _board_rejection(label: xr.DataArray, truth: xr.Dataset, features: xr.Datase
 
 def evaluate_campaign(
     directory: str | os.PathLike,
-    config: Mapping,
     *,
+    calibration_params: Mapping,
+    aoi_params: Mapping,
+    feature_params: Mapping,
+    label_params: Mapping,
+    method: str,
+    max_per_class: int | None,
     truth: str | os.PathLike | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> dict:
     """Process a synthetic campaign in this process and score it against its truth.
 
+    The workflow's parameters are those of :mod:`surffin.pipeline.parameters`
+    for its configuration: ``calibration_parameters(config)``, and so on.
+
     Parameters
     ----------
     directory : path-like
         A campaign written by :func:`surffin.simulate_campaign`.
-    config : mapping
-        The workflow's configuration (:func:`surffin.pipeline.parameters.read_config`).
+    calibration_params : mapping
+        Keyword arguments of :func:`surffin.method.calibration.calibrate`.
+    aoi_params : mapping
+        Of :func:`surffin.method.stages.aoi_stage`.
+    feature_params : mapping
+        Of :func:`surffin.method.stages.features_stage` (without the item's roi).
+    label_params : mapping
+        Of :func:`surffin.method.stages.labels_stage` (``k``, ``filter_kind``
+        and ``filter_size`` also serve the ceiling's and the reject-free labels).
+    method : str
+        Registration method (:func:`surffin.method.stages.registration_stage`).
+    max_per_class : int or None
+        Most training samples per class (:func:`surffin.method.classify.training_set`).
     truth : path-like, optional
         Its truth folder; default ``<directory>-truth``.
     progress : callable, optional
@@ -144,9 +162,8 @@ def evaluate_campaign(
     directory = Path(directory)
     truth_dir = Path(truth) if truth is not None else Path(f"{directory.resolve()}-truth")
     camp = read_campaign(directory)
-    calibration = calibrate(camp, **parameters.calibration_parameters(config))
+    calibration = calibrate(camp, **calibration_params)
     instrument = xr.open_zarr(truth_dir / "instrument.zarr").compute()
-    feature_params = parameters.feature_parameters(config)
     features, ceiling, items, scene_truths = {}, {}, {}, {}
     pooled: dict[str, list] = {"R0": [], "n": [], "ceiling_R0": [], "ceiling_n": []}
     for name, item in camp.items.items():
@@ -155,8 +172,8 @@ def evaluate_campaign(
             ingest,
             calibration,
             roi=item.roi,
-            method=config["registration"]["method"],
-            **parameters.aoi_parameters(config),
+            method=method,
+            **aoi_params,
             **feature_params,
         )
         item_truth = xr.open_zarr(truth_dir / f"{name}.zarr").compute()
@@ -171,11 +188,10 @@ def evaluate_campaign(
         items[name] = {key: _median_abs([values]) for key, values in errors.items()} | {"missing": ours["missing"]}
         if progress is not None:
             progress(name)
-    cap = config["classify"]["max_training_samples"]
+    cap = max_per_class
     training = training_set({n: (features[n], it.cls, it.roi) for n, it in camp.specimens.items()}, max_per_class=cap)
     best_training = training_set({n: (ceiling[n], it.cls, it.roi) for n, it in camp.specimens.items()}, max_per_class=cap)
     classes = training.attrs["classes"]
-    label_params = parameters.label_parameters(config)
     scenes, posterior, correct = {}, [], []
     for name, scene in camp.scenes.items():
         truth_label, truth_classes = read_truth(scene.truth, width=camp.camera.width, height=camp.camera.height)

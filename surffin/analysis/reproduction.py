@@ -5,32 +5,38 @@ diagnostics, the sensitivity analysis, the roughness relation, the jobs' benchma
 files) and returns one row per claim: the paper's value, surffin's, and where
 surffin's comes from, and its origin (:data:`ORIGINS`): whether surffin's value
 echoes an input the simulator's ``paper`` preset took from the paper, which is no
-evidence for the paper's claim, or is measured. :func:`run_paper_comparison`
+evidence for the paper's claim, or is measured. :func:`write_comparison`
 writes them as a Markdown table (``paper-comparison.md``), the generated half of
-``docs/paper-reproduction.md``. Nothing here computes science: it only reads and
-lines up numbers, so that a rerun of the workflow regenerates the table.
+``docs/paper-reproduction.md``; the paper's numbers are :mod:`surffin.paper`'s.
+Nothing here computes science: it only reads and lines up numbers, so that a
+rerun of the workflow regenerates the table.
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import logging
 import os
 from collections.abc import Mapping, Sequence
 from itertools import pairwise
 from pathlib import Path
 
-__all__ = ["ORIGINS", "PAPER", "comparison", "run_paper_comparison", "to_markdown"]
+from surffin.io.files import write_text
+from surffin.paper import (
+    ACCURACY,
+    FEATURE_SPAN_PERCENT,
+    RUNTIME_S,
+    RUNTIME_VIEWS,
+    SEPARATION_DEG,
+    SLOPES,
+    VARIABILITY_PERCENT,
+)
 
-#: The paper's numbers (Frangez et al. 2021), by the quantity they describe.
-PAPER = {
-    "accuracy": {"label": 0.97, "label_filtered": 1.0},
-    "separation_deg": 20.0,
-    "slope": {"R0": -0.5, "n": -1.0},
-    "feature_span_percent": {"R0": 10.0, "n": 4.0},
-    "runtime_s": 300.0,
-    "runtime_views": 5,
-}
+__all__ = ["ORIGINS", "COMPARISON_INPUTS", "comparison", "write_comparison", "to_markdown"]
+
+log = logging.getLogger("surffin")
+
 _BUILT, _MEASURED = "by construction", "measured"
 #: What the ``origin`` column of a row says (the table's legend), for the synthetic
 #: ``paper`` campaign, the workflow's default; on a real camera's campaign every row is measured.
@@ -52,13 +58,15 @@ _PRESET = {
     "n": "n = 1.30 - 2.4 roughness_mm",
     "R0": "R0 = 0.80, 0.86, 0.92, 0.81 for S1..S4",
     "roughness": "roughness_mm of Table 4",
-    "variability": "coef_variability = Table 2's (8.94, 3.92, 1.79, 1.38, 4.44 %)",
+    "variability": f"coef_variability = Table 2's ({', '.join(f'{value:g}' for value in VARIABILITY_PERCENT.values())} %)",
     "correlation": (
         "coef_variability = Table 2's, coef_mean C < 0 < D; in the fit's gauge E = 1 (A E, B E, C/E, D/E) the "
         "true coefficients share E's variation, which makes them correlate with Table 2's signs and C-D near -1"
     ),
 }
 _TERMS = ("A", "B", "C", "D", "E")
+#: The workflow's outputs :func:`write_comparison` reads, by name.
+COMPARISON_INPUTS = ("summary", "diagnostics", "sensitivity", "slopes", "relation")
 _SENSITIVITY = "snakemake --cores 2 sensitivity (or: surffin sensitivity --out DIR)"
 _DIAGNOSTICS = "snakemake --cores 2 calibration_diagnostics"
 _MAIN = "snakemake --cores 2"
@@ -155,11 +163,11 @@ def _sensitivity_rows(slopes: Sequence[Mapping], separation: Sequence[Mapping]) 
     for row in slopes:
         rows.append(
             _row("sensitivity", f"slope of std against K views, {row['parameter']}, {row['noise']} noise {row['sigma']}",
-                 PAPER["slope"][row["parameter"]], _number(row["slope"]), "sensitivity/slopes.csv", _SENSITIVITY, _MEASURED,
+                 SLOPES[row["parameter"]], _number(row["slope"]), "sensitivity/slopes.csv", _SENSITIVITY, _MEASURED,
                  f"linearised {_fmt(_number(row['predicted_slope']), 2)}; K >= 3 only: {_fmt(_number(row['slope_from_3']), 2)}")
         )
     for row in separation:
-        paper = PAPER["separation_deg"] if (row["noise"], row["level"]) == ("reflectance", "max") else "n/a"
+        paper = SEPARATION_DEG if (row["noise"], row["level"]) == ("reflectance", "max") else "n/a"
         rows.append(
             _row("sensitivity", f"separation for std < 10 %, {row['parameter']}, {row['noise']} noise {row['sigma']}, deg",
                  paper, float(row["required_separation_deg"]), "sensitivity/sensitivity.zarr", _SENSITIVITY, _MEASURED,
@@ -178,8 +186,8 @@ def _feature_rows(summary: Mapping, specimens: Sequence[str]) -> list[dict]:
             _row("features", f"{name}: mean R0, n (relative std R0, n %)", "see Fig. 14",
                  f"{_fmt(stats['R0']['mean'])}, {_fmt(stats['n']['mean'])} ({_fmt(spans['R0'], 2)}, {_fmt(spans['n'], 2)})",
                  "summary.json", _MAIN, _BUILT,
-                 _note(_preset("R0", "n"), f"paper: span within a specimen ~{PAPER['feature_span_percent']['R0']:g} % R0, "
-                       f"~{PAPER['feature_span_percent']['n']:g} % n"))
+                 _note(_preset("R0", "n"), f"paper: span within a specimen ~{FEATURE_SPAN_PERCENT['R0']:g} % R0, "
+                       f"~{FEATURE_SPAN_PERCENT['n']:g} % n"))
         )
     n = [items[s]["n"]["mean"] for s in specimens]
     r0 = [items[s]["R0"]["mean"] for s in specimens]
@@ -198,7 +206,7 @@ def _classification_rows(summary: Mapping) -> list[dict]:
         for var in ("label", "label_filtered"):
             accuracy = result.get("accuracy", {}).get(var)
             rows.append(
-                _row("classification", f"{scene}: accuracy of {var} (unclassified counts as wrong)", PAPER["accuracy"][var],
+                _row("classification", f"{scene}: accuracy of {var} (unclassified counts as wrong)", ACCURACY[var],
                      None if accuracy is None else accuracy["accuracy"], "summary.json", _MAIN, _MEASURED,
                      "the classes lie as far apart as the preset's R0 and n put them" if accuracy is not None
                      else "no truth for this scene")
@@ -225,9 +233,9 @@ def _runtime_rows(runtime: Mapping[str, Mapping]) -> list[dict]:
     for scene, spec in runtime.items():
         seconds = sum(float(_read_table(path, "\t")[0]["s"]) for path in spec["benchmarks"])
         rows.append(
-            _row("runtime", f"{scene}: {spec['views']} views from raw files to labels, s", PAPER["runtime_s"], seconds,
+            _row("runtime", f"{scene}: {spec['views']} views from raw files to labels, s", RUNTIME_S, seconds,
                  "logs/benchmarks/*/" + scene + ".tsv", _MAIN, _MEASURED,
-                 f"paper: ~5 min for {PAPER['runtime_views']} views; here the jobs' wall times summed (each a new process)")
+                 f"paper: ~5 min for {RUNTIME_VIEWS} views; here the jobs' wall times summed (each a new process)")
         )
     return rows
 
@@ -290,43 +298,61 @@ def to_markdown(rows: Sequence[Mapping]) -> str:
     return "\n".join([*lines, "", *legend, "", "Regenerate with: " + "; ".join(f"`{c}`" for c in commands), ""])
 
 
-def run_paper_comparison(
+def write_comparison(
     output: str | os.PathLike,
+    inputs: Mapping[str, str | os.PathLike | None],
     *,
-    summary: str | os.PathLike,
     specimens: Sequence[str],
-    diagnostics: str | os.PathLike | None = None,
-    sensitivity: str | os.PathLike | None = None,
-    slopes: str | os.PathLike | None = None,
-    relation: str | os.PathLike | None = None,
     runtime: Mapping[str, Mapping] | None = None,
-    log_path: str | os.PathLike | None = None,
 ) -> Path:
     """Write ``paper-comparison.md`` from the workflow's outputs (see :func:`comparison`).
 
-    ``sensitivity`` is the sensitivity store (its separation summary is
-    recomputed from the table), ``slopes`` its slopes CSV.
+    The workflow's job is :func:`surffin.pipeline.analyses.run_paper_comparison`.
+
+    Parameters
+    ----------
+    output : path-like
+        Written atomically.
+    inputs : mapping
+        Name (of :data:`COMPARISON_INPUTS`) -> path, None or left out where not
+        given: ``summary`` (``summary.json``, required), ``diagnostics``
+        (``diagnostics/calibration.json``), ``sensitivity`` (the sensitivity
+        store: its separation summary is recomputed from the table), ``slopes``
+        (its slopes CSV), ``relation`` (``roughness/relation.json``).
+    specimens, runtime
+        As for :func:`comparison`.
+
+    Returns
+    -------
+    Path
+        ``output``.
+
+    Raises
+    ------
+    ValueError
+        An unknown input, or no ``summary``.
     """
-    from surffin.io.files import write_text
-    from surffin.pipeline.jobs import logging_to
+    if unknown := set(inputs) - set(COMPARISON_INPUTS):
+        raise ValueError(f"unknown comparison inputs {sorted(unknown)}; known: {list(COMPARISON_INPUTS)}")
+    if inputs.get("summary") is None:
+        raise ValueError("the paper comparison needs the summary (summary.json)")
+    summary, diagnostics, sensitivity, slopes, relation = (inputs.get(name) for name in COMPARISON_INPUTS)
+    separation = []
+    if sensitivity is not None:
+        from surffin.analysis.sensitivity import separation_summary
+        from surffin.io.store import open_store
 
-    with logging_to(log_path) as log:
-        separation = []
-        if sensitivity is not None:
-            from surffin.analysis.sensitivity import separation_summary
-            from surffin.io.store import open_store
-
-            frame = separation_summary(open_store(sensitivity, stage="sensitivity").load()).to_dataframe()
-            separation = frame.reset_index().to_dict("records")
-        rows = comparison(
-            summary=json.loads(Path(summary).read_text()),
-            specimens=specimens,
-            diagnostics=None if diagnostics is None else json.loads(Path(diagnostics).read_text()),
-            slopes=_read_table(slopes) if slopes is not None else (),
-            separation=separation,
-            relation=None if relation is None else json.loads(Path(relation).read_text()),
-            runtime=runtime,
-        )
-        log.info("paper comparison: %d rows", len(rows))
-        header = "# surffin beside the paper (generated by surffin.analysis.reproduction; see docs/paper-reproduction.md)\n\n"
-        return write_text(output, header + to_markdown(rows))
+        frame = separation_summary(open_store(sensitivity, stage="sensitivity").load()).to_dataframe()
+        separation = frame.reset_index().to_dict("records")
+    rows = comparison(
+        summary=json.loads(Path(summary).read_text()),
+        specimens=specimens,
+        diagnostics=None if diagnostics is None else json.loads(Path(diagnostics).read_text()),
+        slopes=_read_table(slopes) if slopes is not None else (),
+        separation=separation,
+        relation=None if relation is None else json.loads(Path(relation).read_text()),
+        runtime=runtime,
+    )
+    log.info("paper comparison: %d rows", len(rows))
+    header = "# surffin beside the paper (generated by surffin.analysis.reproduction; see docs/paper-reproduction.md)\n\n"
+    return write_text(output, header + to_markdown(rows))

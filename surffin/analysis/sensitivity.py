@@ -54,6 +54,7 @@ import pandas as pd
 import xarray as xr
 
 from surffin.method.scattering import fit_scattering, scattering_model
+from surffin.paper import SLOPES as PAPER_SLOPES
 
 __all__ = [
     "TRUTH",
@@ -64,8 +65,8 @@ __all__ = [
     "SEPARATIONS_DEG",
     "SPAN_DEG",
     "VIEW_COUNTS",
-    "PAPER_SLOPES",
     "THRESHOLD",
+    "DEFAULT_DRAWS",
     "OUTPUTS",
     "jacobian",
     "aoi_derivative",
@@ -77,7 +78,7 @@ __all__ = [
     "separation_summary",
     "plot_separation",
     "plot_views",
-    "run_sensitivity",
+    "write_sensitivity",
 ]
 
 log = logging.getLogger("surffin")
@@ -98,17 +99,17 @@ SEPARATIONS_DEG = tuple(range(1, 46))
 SPAN_DEG = 45.0
 #: Numbers of views of the K-view case.
 VIEW_COUNTS = tuple(range(2, 11))
-#: The paper's statement for the K-view case: std proportional to K^slope.
-PAPER_SLOPES = {"R0": -0.5, "n": -1.0}
 #: Relative standard deviation asked of both parameters (the paper's "10 %").
 THRESHOLD = 0.1
 
+#: Draws per configuration unless told.
+DEFAULT_DRAWS = 500
+
 _PARAMETERS = tuple(TRUTH)
-_DEFAULT_DRAWS = 500
 # Standard errors of the std estimate within which the Monte Carlo "agrees" with
 # the linearised prediction (see separation_summary).
 _AGREEMENT_ERRORS = 3.0
-# The resolution of surffin.report.figures.DPI, without importing that module (and its classifiers).
+# The resolution of surffin.report.canvas.DPI, which this layer does not import.
 _FIGURE_DPI = 120
 
 
@@ -355,7 +356,7 @@ _COLUMN_ATTRS = {
 }
 
 
-def sensitivity_table(draws: int = _DEFAULT_DRAWS, seed: int = 0) -> xr.Dataset:
+def sensitivity_table(draws: int = DEFAULT_DRAWS, seed: int = 0) -> xr.Dataset:
     """The Monte Carlo of both cases, both noise types and both levels, as a tidy table.
 
     Parameters
@@ -721,10 +722,10 @@ def plot_views(table: xr.Dataset, path: str | os.PathLike) -> Path:
     return _save(fig, path)
 
 
-# --- the workflow's entry ------------------------------------------------------------------------
+# --- the files of a run --------------------------------------------------------------------------
 
 
-#: Files :func:`run_sensitivity` writes in its output folder: key -> file name.
+#: Files :func:`write_sensitivity` writes in its output folder: key -> file name.
 OUTPUTS = {
     "table": "sensitivity.csv",
     "store": "sensitivity.zarr",
@@ -742,10 +743,12 @@ def _write_csv(frame: pd.DataFrame, path: Path) -> Path:
     return path
 
 
-def run_sensitivity(
-    out_dir: str | os.PathLike, *, draws: int = _DEFAULT_DRAWS, seed: int = 0, log_path: str | os.PathLike | None = None
+def write_sensitivity(
+    out_dir: str | os.PathLike, *, draws: int = DEFAULT_DRAWS, seed: int = 0, code_version: int | None = None
 ) -> dict[str, Path]:
     """Run the Monte Carlo and write the table, its store, the slopes and both figures.
+
+    The workflow's job is :func:`surffin.pipeline.analyses.run_sensitivity`.
 
     Parameters
     ----------
@@ -755,33 +758,31 @@ def run_sensitivity(
         Draws per configuration.
     seed : int >= 0
         Seed of the run (see :func:`configuration_rng`).
-    log_path : path-like, optional
-        The job's log file.
+    code_version : int, optional
+        Recorded in the store's provenance (the stage table's version of the stage).
 
     Returns
     -------
     dict of str to Path
         The written files by the keys of :data:`OUTPUTS`.
     """
-    from surffin.pipeline.jobs import logging_to
     from surffin.io.store import provenance, write_store
 
     draws = _check_count("draws", draws, 2)
     seed = _check_count("seed", seed, 0)
     out = Path(out_dir)
     paths = {key: out / name for key, name in OUTPUTS.items()}
-    with logging_to(log_path):
-        start = time.perf_counter()
-        table = sensitivity_table(draws, seed)
-        log.info("sensitivity: %d rows (%d draws per configuration) in %.2f s", table.sizes["row"], draws,
-                 time.perf_counter() - start)
-        slopes = views_slopes(table)
-        _write_csv(_frame(table), paths["table"])
-        table.attrs |= provenance("sensitivity", {"draws": draws, "seed": seed})
-        write_store(table, paths["store"])
-        _write_csv(_frame(slopes), paths["slopes"])
-        plot_separation(table, paths["separation_figure"])
-        plot_views(table, paths["views_figure"])
-        log.info("sensitivity: wrote %s in %s; done in %.2f s", ", ".join(OUTPUTS.values()), out,
-                 time.perf_counter() - start)
+    start = time.perf_counter()
+    table = sensitivity_table(draws, seed)
+    log.info("sensitivity: %d rows (%d draws per configuration) in %.2f s", table.sizes["row"], draws,
+             time.perf_counter() - start)
+    slopes = views_slopes(table)
+    _write_csv(_frame(table), paths["table"])
+    table.attrs |= provenance("sensitivity", {"draws": draws, "seed": seed}, version=code_version)
+    write_store(table, paths["store"])
+    _write_csv(_frame(slopes), paths["slopes"])
+    plot_separation(table, paths["separation_figure"])
+    plot_views(table, paths["views_figure"])
+    log.info("sensitivity: wrote %s in %s; done in %.2f s", ", ".join(OUTPUTS.values()), out,
+             time.perf_counter() - start)
     return paths

@@ -33,7 +33,9 @@ _PARTIAL = ".partial-"
 _RETIRED = ".retired-"
 
 
-def provenance(stage: str, parameters: Mapping | None = None, inputs: Mapping | None = None) -> dict:
+def provenance(
+    stage: str, parameters: Mapping | None = None, inputs: Mapping | None = None, version: int | None = None
+) -> dict:
     """Attributes recording what made a store.
 
     Parameters
@@ -44,18 +46,22 @@ def provenance(stage: str, parameters: Mapping | None = None, inputs: Mapping | 
         The processing parameters of that stage (JSON-serialisable values).
     inputs : mapping, optional
         Description of the inputs (file names, sizes, checksums, ...).
+    version : int, optional
+        The stage's code version (:data:`surffin.pipeline.table.STAGES`).
 
     Returns
     -------
     dict
-        ``surffin_version``, ``surffin_stage``, ``surffin_parameters``, ``surffin_inputs``.
+        ``surffin_version``, ``surffin_stage``, ``surffin_parameters``, ``surffin_inputs``
+        and, when given, ``surffin_code_version``.
     """
-    return {
+    attrs = {
         "surffin_version": __version__,
         "surffin_stage": stage,
         "surffin_parameters": dict(parameters or {}),
         "surffin_inputs": dict(inputs or {}),
     }
+    return attrs if version is None else attrs | {"surffin_code_version": version}
 
 
 def _leftovers(path: Path) -> list[Path]:

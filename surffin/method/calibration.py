@@ -69,11 +69,11 @@ import cv2
 import numpy as np
 import xarray as xr
 
-from surffin.errors import CalibrationError
-from surffin.method.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW, DEFAULT_WINDOW, _angle_of_incidence
+from surffin.errors import CalibrationError, StoreError
+from surffin.method.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW, DEFAULT_WINDOW, frame_angle_of_incidence
 from surffin.io.ingest import describe_file
 from surffin.method.noise import NOISE_VIEWS, NoiseStatistics
-from surffin.io.store import provenance
+from surffin.io.store import open_store, provenance
 
 if TYPE_CHECKING:
     from surffin.grid import Roi
@@ -91,6 +91,8 @@ __all__ = [
     "fit_calibration",
     "reference_scale",
     "calibration_diagnostics",
+    "with_reflectance",
+    "observe_view",
     "calibration_set",
     "calibrate",
     "reflectance",
@@ -810,17 +812,17 @@ class _WallSamples:
             {
                 "sample_obs": (
                     ("sample_pixel", "view", "quantity"),
-                    _with_reflectance(probes, coef[:, rows, columns][:, :, None], scale_k, axis=-1),
+                    with_reflectance(probes, coef[:, rows, columns][:, :, None], scale_k, axis=-1),
                     {**units, "long_name": "wall observations of the sample pixels in every wall view"},
                 ),
                 "wall_obs": (
                     ("wall_sample", "quantity"),
-                    _with_reflectance(random, coef[:, wall_y, wall_x], scale_k, axis=0).T,
+                    with_reflectance(random, coef[:, wall_y, wall_x], scale_k, axis=0).T,
                     {**units, "long_name": "wall observations at random pixels of the crop"},
                 ),
                 "wall_image": (
                     ("quantity", "y", "x"),
-                    _with_reflectance(image, coef, scale_k, axis=0).astype(np.float32),
+                    with_reflectance(image, coef, scale_k, axis=0).astype(np.float32),
                     {**units, "long_name": "the most perpendicular wall view", "view": stem},
                 ),
             },
@@ -836,11 +838,26 @@ class _WallSamples:
         )
 
 
-def _with_reflectance(values: np.ndarray, coef: np.ndarray, scale_k: float, axis: int) -> np.ndarray:
+def with_reflectance(values: np.ndarray, coef: np.ndarray, scale_k: float, axis: int) -> np.ndarray:
     """Observations (intensity, distance, aoi along ``axis``) with their reflectance ``I / (k f)`` appended.
 
-    ``coef`` (5, ...) broadcasts against the observations without ``axis``; the
-    reflectance is NaN where ``f <= 0`` or an input is NaN.
+    Parameters
+    ----------
+    values : ndarray
+        Intensity (camera units), distance (m) and AOI (rad), stacked along ``axis`` (size 3).
+    coef : (5, ...) ndarray
+        Coefficients A..E of the instrument function; broadcasts against the
+        observations without ``axis``.
+    scale_k : float
+        The calibration's scale k.
+    axis : int
+        The axis of the quantities.
+
+    Returns
+    -------
+    ndarray
+        ``values`` with the reflectance appended along ``axis`` (size 4); NaN
+        where ``f <= 0`` or an input is NaN.
     """
     intensity, distance, aoi = np.moveaxis(values, axis, 0)
     f = instrument_function(coef, distance, aoi)
@@ -849,10 +866,26 @@ def _with_reflectance(values: np.ndarray, coef: np.ndarray, scale_k: float, axis
     return np.concatenate([values, np.expand_dims(reflectance, axis)], axis=axis)
 
 
-def _observe(campaign: Campaign, path: os.PathLike, aoi: Mapping) -> Observation:
-    """Read one view and compute its AOI and distance on the full sensor (``aoi``: window, jump, max_window)."""
+def observe_view(campaign: Campaign, path: os.PathLike, aoi: Mapping) -> Observation:
+    """Read one view and compute its AOI and distance on the full sensor, as the calibration does.
+
+    Parameters
+    ----------
+    campaign : Campaign
+        The campaign whose camera took the view.
+    path : path-like
+        The view file.
+    aoi : mapping
+        AOI parameters ``window``, ``jump``, ``max_window``
+        (:func:`surffin.method.geometry.frame_angle_of_incidence`).
+
+    Returns
+    -------
+    Observation
+        The view's intensity, distance (m), AOI (rad) and valid mask on the full sensor.
+    """
     view = campaign.read_view(path)
-    aoi, distance = _angle_of_incidence(view.xyz, aoi["window"], jump=aoi["jump"], max_window=aoi["max_window"])
+    aoi, distance = frame_angle_of_incidence(view.xyz, aoi["window"], jump=aoi["jump"], max_window=aoi["max_window"])
     return Observation(str(path), view.intensity, distance, aoi, view.valid)
 
 
@@ -1012,7 +1045,7 @@ def calibrate(
     stats = WallStatistics((campaign.camera.height, campaign.camera.width))
     samples = _WallSamples(campaign.crop, len(wall))
     for path in wall:
-        view = _observe(campaign, path, aoi)
+        view = observe_view(campaign, path, aoi)
         stats.add(view.intensity, view.distance, view.aoi, view.valid)
         samples.add(view, path.stem)
         advance(path)
@@ -1027,14 +1060,14 @@ def calibrate(
 
     noise = NoiseStatistics()
     for path in noise_views:
-        view = _observe(campaign, path, aoi)
+        view = observe_view(campaign, path, aoi)
         expected = instrument_function(ds["coef"].values, view.distance, view.aoi) * np.cos(view.aoi)
         noise.add(view.intensity, view.intensity / expected, view.valid)
         advance(path)
 
     def panel_views():
         for path in reference.views:
-            yield _observe(campaign, path, aoi)
+            yield observe_view(campaign, path, aoi)
             advance(path)
 
     scale_k, details = reference_scale(ds["coef"].values, panel_views(), reference.roi, reference.reflectance)
@@ -1116,3 +1149,25 @@ def reflectance(
     out.name = "reflectance"
     out.attrs = {"units": "1", "long_name": "absolute reflectance at the observed angle of incidence"}
     return out
+
+
+def check_calibration(path: str | os.PathLike, campaign: Campaign) -> None:
+    """Check that a calibration store made by another campaign fits this campaign's camera.
+
+    Raises
+    ------
+    StoreError
+        The store is not a calibration, or its sensor grid is not this camera's
+        (width x height), so it cannot cover the crop.
+    """
+    ds = open_store(path, stage="calibration")
+    camera = campaign.camera
+    grid = (ds.sizes.get("y"), ds.sizes.get("x"))
+    if grid != (camera.height, camera.width):
+        raise StoreError(
+            f"{path}: calibration of a {grid[1]}x{grid[0]} sensor, but {campaign.path} describes a "
+            f"{camera.width}x{camera.height} camera; use a calibration of the same camera"
+        )
+    rows, cols = campaign.crop.slices
+    if not bool(ds["coef"].isel(y=rows, x=cols).notnull().any()):
+        raise StoreError(f"{path}: no calibrated pixel inside the crop {campaign.crop} of {campaign.path}")

@@ -40,7 +40,7 @@ import xarray as xr
 
 from surffin.grid import Roi
 from surffin.errors import SurffinError
-from surffin.method.features import UNCERTAINTY, _check_grid, _check_size, _image_filter, select_roi
+from surffin.method.features import UNCERTAINTY, check_grid, check_size, image_filter, select_roi
 
 __all__ = [
     "FEATURES",
@@ -80,7 +80,7 @@ def _feature_matrix(ds: xr.Dataset) -> tuple[np.ndarray, np.ndarray]:
     if missing:
         raise ValueError(f"features Dataset lacks {missing}; it needs {list(FEATURES)} on (y, x)")
     for name in FEATURES:
-        _check_grid(ds[name], name)
+        check_grid(ds[name], name)
     stacked = ds[list(FEATURES)].to_dataarray("feature").transpose("y", "x", "feature")
     values = np.asarray(stacked.values, dtype=np.float64).reshape(-1, len(FEATURES))
     return values, np.isfinite(values).all(axis=1)
@@ -314,7 +314,7 @@ def _measurement_variance(features: xr.Dataset, training: xr.Dataset) -> np.ndar
     for column, name in enumerate(FEATURES):
         variable = f"{name}_uncertainty"
         if name in UNCERTAINTY and variable in features:
-            _check_grid(features[variable], variable)
+            check_grid(features[variable], variable)
             values = np.asarray(features[variable].transpose("y", "x").values, dtype=np.float64).ravel()
             variance[:, column] = np.nan_to_num(values / std[column]) ** 2
     return variance
@@ -537,12 +537,12 @@ def filter_labels(label: xr.DataArray, *, kind: str = "median", size: int = 5) -
     """
     if kind not in _FILTERS:
         raise ValueError(f"kind must be one of {_FILTERS}, got {kind!r}")
-    size = _check_size(size)
+    size = check_size(size)
     if not np.issubdtype(label.dtype, np.integer):
         raise ValueError(f"label must hold integer class indices, got dtype {label.dtype}")
     if not {"y", "x"} <= set(label.dims):
         raise ValueError(f"label must have dims (..., y, x), got {label.dims}")
-    out = _image_filter(label, _filter_image, size // 2, UNCLASSIFIED, np.int16, size=size, kind=kind)
+    out = image_filter(label, _filter_image, size // 2, UNCLASSIFIED, np.int16, size=size, kind=kind)
     out.attrs = {**label.attrs, "filter": kind, "filter_size": size}
     return out
 
@@ -597,7 +597,7 @@ def score(label: xr.DataArray, truth_label, truth_classes: Sequence[str], classe
         ``"(unclassified)"``).
     """
     classes, truth_classes = list(classes), list(truth_classes)
-    _check_grid(label, "label")
+    check_grid(label, "label")
     predicted = np.asarray(label.transpose("y", "x").values)
     truth = np.asarray(_on_label_grid(truth_label, label))
     _check_indices(predicted, len(classes), "label")

@@ -105,6 +105,9 @@ __all__ = [
     "DEFAULT_MIN_FRACTION",
     "QUALITY",
     "UNCERTAINTY",
+    "check_size",
+    "check_grid",
+    "image_filter",
     "gaussian_sigma",
     "smooth",
     "smooth_uncertainty",
@@ -131,13 +134,47 @@ UNCERTAINTY = {"R0": "R0_sigma", "n": "n_sigma"}
 _RESIDUAL_CLIP = 5.0
 
 
-def _check_size(size) -> int:
+def check_size(size) -> int:
+    """A window side checked: an odd positive integer.
+
+    Parameters
+    ----------
+    size : int
+        Window side, pixels.
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    ValueError
+        ``size`` is not an odd positive integer.
+    """
     if isinstance(size, bool) or not isinstance(size, numbers.Integral) or size < 1 or size % 2 == 0:
         raise ValueError(f"size must be an odd positive integer (window side, pixels), got {size!r}")
     return int(size)
 
 
-def _check_grid(arr, name: str, dims=("y", "x")) -> None:
+def check_grid(arr, name: str, dims=("y", "x")) -> None:
+    """Check that an argument is a DataArray over exactly the dims ``dims`` (in any order).
+
+    Parameters
+    ----------
+    arr : object
+        The argument.
+    name : str
+        Its name, for the error message.
+    dims : tuple of str
+        The dims it must have.
+
+    Raises
+    ------
+    TypeError
+        ``arr`` is not a DataArray.
+    ValueError
+        Its dims are not ``dims``.
+    """
     if not isinstance(arr, xr.DataArray):
         raise TypeError(f"{name} must be an xarray.DataArray with dims {dims}, got {type(arr).__name__}")
     if set(arr.dims) != set(dims):
@@ -149,12 +186,12 @@ def gaussian_sigma(size: int) -> float:
 
     ``sigma = 0.3 ((size - 1) / 2 - 1) + 0.8``; 1.4 px for ``size = 7``.
     """
-    return 0.3 * ((_check_size(size) - 1) / 2 - 1) + 0.8
+    return 0.3 * ((check_size(size) - 1) / 2 - 1) + 0.8
 
 
 def _smoothing(size, sigma, min_weight=None) -> tuple[int, float, np.ndarray]:
     """Checked window side, Gaussian sigma (default: :func:`gaussian_sigma`) and 1-D weights of a smoothing."""
-    size = _check_size(size)
+    size = check_size(size)
     sigma = gaussian_sigma(size) if sigma is None else float(sigma)
     if not sigma > 0:
         raise ValueError(f"sigma must be positive (pixels), got {sigma!r}")
@@ -253,11 +290,30 @@ def _over_images(*data, kernel, radius: int, boundary, dtype, **kwargs):
     )
 
 
-def _image_filter(arr, kernel, radius: int, boundary, dtype, **kwargs) -> xr.DataArray:
+def image_filter(arr, kernel, radius: int, boundary, dtype, **kwargs) -> xr.DataArray:
     """Apply an image kernel over the (y, x) plane, any other dims looped, lazily on dask.
 
-    ``arr`` is one DataArray or a sequence of DataArrays on one grid whose
-    images the kernel takes together; the result has the dims of the first.
+    Parameters
+    ----------
+    arr : DataArray or sequence of DataArray
+        One DataArray, or several on one grid whose images the kernel takes together.
+    kernel : callable
+        ``kernel(*images, **kwargs)`` -> one (y, x) image, on numpy arrays: one
+        image of each input, in order.
+    radius : int
+        Pixels of the neighbourhood the kernel reads around a pixel (the halo of dask chunks).
+    boundary : scalar
+        The value outside the image that the kernel treats as missing (NaN for
+        measurements, -1 for labels), so a chunk's halo beyond the border changes nothing.
+    dtype : dtype
+        Of the result.
+    **kwargs
+        Passed to ``kernel``.
+
+    Returns
+    -------
+    DataArray
+        With the dims of the (first) input; lazy when it is.
     """
     arrays = [arr] if isinstance(arr, xr.DataArray) else list(arr)
     out = xr.apply_ufunc(
@@ -307,7 +363,7 @@ def smooth(
         ``smoothing_sigma``. Lazy on dask input.
     """
     size, sigma, weights = _smoothing(size, sigma, min_weight)
-    out = _image_filter(
+    out = image_filter(
         _as_float(da, "da"),
         _smooth_image,
         size // 2,
@@ -393,7 +449,7 @@ def smooth_uncertainty(
         da, uncertainty = xr.align(_as_float(da, "da"), _as_float(uncertainty, "uncertainty"), join="exact")
     except ValueError as exc:
         raise ValueError(f"smooth_uncertainty: da and uncertainty must be on one grid ({exc})") from exc
-    out = _image_filter(
+    out = image_filter(
         (da, uncertainty.transpose(*da.dims)),
         _uncertainty_image,
         size // 2,
@@ -447,8 +503,8 @@ def residual_correlation(
 
     if isinstance(max_lag, bool) or not isinstance(max_lag, numbers.Integral) or max_lag < 0:
         raise ValueError(f"max_lag must be a non-negative integer (pixels), got {max_lag!r}")
-    _check_grid(reflectance, "reflectance", ("view", "y", "x"))
-    _check_grid(aoi, "aoi", ("view", "y", "x"))
+    check_grid(reflectance, "reflectance", ("view", "y", "x"))
+    check_grid(aoi, "aoi", ("view", "y", "x"))
     missing = [name for name in ("R0", "n", "status", "n_views") if name not in fit]
     if missing:
         raise ValueError(f"residual_correlation: fit lacks {missing}; pass the Dataset of fit_scattering")
@@ -523,7 +579,7 @@ def variance_inflation(correlation: xr.DataArray, size: int = DEFAULT_SIZE, *, s
     """
     size, sigma, weights = _smoothing(size, sigma)
     reach = size - 1
-    _check_grid(correlation, "correlation", ("lag_y", "lag_x"))
+    check_grid(correlation, "correlation", ("lag_y", "lag_x"))
     lags = np.arange(-reach, reach + 1)
     try:
         rho = correlation.sel(lag_y=lags, lag_x=lags).transpose("lag_y", "lag_x").values
@@ -570,7 +626,7 @@ def local_std(
         or the box holds too few finite pixels. Attrs ``window_size``, ``ddof``,
         ``min_count``, ``noise_corrected``. Lazy on dask input.
     """
-    size = _check_size(size)
+    size = check_size(size)
     if min_count is None:
         min_count = math.ceil(DEFAULT_MIN_FRACTION * size * size)
     for name, value in (("ddof", ddof), ("min_count", min_count)):
@@ -582,7 +638,7 @@ def local_std(
             images = list(xr.align(images, _as_float(noise_variance, "noise_variance"), join="exact"))
         except ValueError as exc:
             raise ValueError(f"local_std: da and noise_variance must be on the same grid ({exc})") from exc
-    out = _image_filter(
+    out = image_filter(
         images,
         _local_std_image,
         size // 2,
@@ -649,7 +705,7 @@ def views_by_incidence(aoi: xr.DataArray, region: Roi | None = None) -> list:
     ValueError
         No view has a finite AOI in the region.
     """
-    _check_grid(aoi, "aoi", ("view", "y", "x"))
+    check_grid(aoi, "aoi", ("view", "y", "x"))
     part = aoi if region is None else select_roi(aoi, region)
     values = part.transpose("view", "y", "x").values.reshape(part.sizes["view"], -1)
     finite = np.isfinite(values)
@@ -675,7 +731,7 @@ def first_available(data: xr.DataArray) -> tuple[xr.DataArray, xr.DataArray]:
     source : (y, x) DataArray of int16
         Position along ``view`` of the view each value comes from, -1 where none.
     """
-    _check_grid(data, "data", ("view", "y", "x"))
+    check_grid(data, "data", ("view", "y", "x"))
     data = data.transpose("view", "y", "x")
     values = data.isel(view=-1, drop=True)
     source = xr.where(np.isfinite(values), data.sizes["view"] - 1, -1).astype(np.int16)
@@ -720,8 +776,8 @@ def variability(
         ``"1"``; NaN where either input is missing or the AOI is >= 90 deg.
         Warp it onto the reference grid afterwards, not before (module docstring).
     """
-    _check_grid(reflectance, "reflectance")
-    _check_grid(aoi, "aoi")
+    check_grid(reflectance, "reflectance")
+    check_grid(aoi, "aoi")
     try:
         extra = [] if relative_noise is None else [relative_noise]
         reflectance, aoi, *noise = xr.align(reflectance, aoi, *extra, join="exact")
@@ -782,7 +838,7 @@ def features(
     missing = [name for name in ("R0", "n", *UNCERTAINTY.values()) if name not in fit]
     if missing:
         raise ValueError(f"features: fit lacks {missing}; pass the Dataset of fit_scattering")
-    _check_grid(variability, "variability")
+    check_grid(variability, "variability")
     try:
         xr.align(fit, variability, join="exact")
     except ValueError as exc:

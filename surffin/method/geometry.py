@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 import xarray as xr
 
-__all__ = ["angle_of_incidence", "DEFAULT_WINDOW", "DEFAULT_JUMP"]
+__all__ = ["angle_of_incidence", "frame_angle_of_incidence", "plane_normals", "DEFAULT_WINDOW", "DEFAULT_JUMP"]
 
 #: Default smallest plane-fit window, pixels (side of the square neighbourhood).
 DEFAULT_WINDOW = 15
@@ -365,7 +365,7 @@ def _window_planes(
     return out
 
 
-def _plane_normals(
+def plane_normals(
     xyz,
     window: int,
     *,
@@ -401,7 +401,7 @@ def _plane_normals(
     return normals
 
 
-def _angle_of_incidence(
+def frame_angle_of_incidence(
     xyz,
     window: int,
     *,
@@ -414,9 +414,9 @@ def _angle_of_incidence(
     Parameters
     ----------
     xyz : (H, W, 3) array_like of float32 or float64, metres
-        As in :func:`_plane_normals`.
+        As in :func:`plane_normals`.
     window, jump, min_fraction, max_window
-        As in :func:`_plane_normals`.
+        As in :func:`plane_normals`.
 
     Returns
     -------
@@ -444,7 +444,7 @@ def _frames(xyz: np.ndarray, window: int, jump: float, max_window: int) -> np.nd
     """AOI and distance (..., H, W, 2) float32 of a stack of frames (..., H, W, 3)."""
     out = np.empty((*xyz.shape[:-1], 2), dtype=np.float32)
     for index in np.ndindex(xyz.shape[:-3]):
-        aoi, distance = _angle_of_incidence(xyz[index], window, jump=jump, max_window=max_window)
+        aoi, distance = frame_angle_of_incidence(xyz[index], window, jump=jump, max_window=max_window)
         out[index + (Ellipsis, 0)] = aoi
         out[index + (Ellipsis, 1)] = distance
     return out

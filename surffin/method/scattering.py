@@ -1,6 +1,6 @@
 """Per-pixel fit of the scattering model R(theta) = R0 cos((2 - 1/n) theta)^n (paper eq. 3).
 
-The kernel :func:`_fit_scattering` works on plain numpy arrays, vectorised over
+The kernel :func:`fit_scattering_arrays` works on plain numpy arrays, vectorised over
 pixels. For fixed n the model is linear in R0, so R0 is eliminated (variable
 projection) and the least-squares problem becomes one-dimensional in n:
 
@@ -21,6 +21,7 @@ import xarray as xr
 
 __all__ = [
     "fit_scattering",
+    "fit_scattering_arrays",
     "scattering_model",
     "FIT_STATUS",
     "DEFAULT_MIN_SPREAD",
@@ -189,7 +190,7 @@ def _fit_pixels(r, theta, w, n_views):
     return result, conv, r0 > 0
 
 
-def _fit_scattering(r, theta, *, min_views=2, min_spread=DEFAULT_MIN_SPREAD):
+def fit_scattering_arrays(r, theta, *, min_views=2, min_spread=DEFAULT_MIN_SPREAD):
     """Fit R = R0 cos((2 - 1/n) theta)^n per pixel over the last axis.
 
     Parameters
@@ -296,7 +297,7 @@ def fit_scattering(reflectance: xr.DataArray, aoi: xr.DataArray, *, min_views: i
     names = list(_OUTPUTS)
 
     def kernel(r, t):
-        result = _fit_scattering(r, t, min_views=min_views, min_spread=min_spread)
+        result = fit_scattering_arrays(r, t, min_views=min_views, min_spread=min_spread)
         return tuple(result[key] for key in names)
 
     results = xr.apply_ufunc(

@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 from dask.local import get_sync
 
-from surffin.errors import StoreError
 from surffin.grid import Roi
 from surffin.io.files import write_json
 from surffin.io.store import open_store, provenance, write_store
@@ -32,7 +31,6 @@ __all__ = [
     "run_ingest",
     "run_stage",
     "run_calibration",
-    "check_calibration",
     "run_training",
     "run_summary",
     "run_roughness_relation",
@@ -174,28 +172,6 @@ def run_calibration(
         views = None if folders is None else calibration_set(camp, folders["wall"], folders["reference"])
         ds = calibrate(camp, calibration=views, **params)
         return _write(ds, output, None, "calibration")
-
-
-def check_calibration(path: str | os.PathLike, campaign) -> None:
-    """Check that a calibration store made by another campaign fits this campaign's camera.
-
-    Raises
-    ------
-    StoreError
-        The store is not a calibration, or its sensor grid is not this camera's
-        (width x height), so it cannot cover the crop.
-    """
-    ds = open_store(path, stage="calibration")
-    camera = campaign.camera
-    grid = (ds.sizes.get("y"), ds.sizes.get("x"))
-    if grid != (camera.height, camera.width):
-        raise StoreError(
-            f"{path}: calibration of a {grid[1]}x{grid[0]} sensor, but {campaign.path} describes a "
-            f"{camera.width}x{camera.height} camera; use a calibration of the same camera"
-        )
-    rows, cols = campaign.crop.slices
-    if not bool(ds["coef"].isel(y=rows, x=cols).notnull().any()):
-        raise StoreError(f"{path}: no calibrated pixel inside the crop {campaign.crop} of {campaign.path}")
 
 
 def run_training(

@@ -14,16 +14,16 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from surffin.analysis.diagnostics import run_calibration_diagnostics
-from surffin.analysis.reproduction import run_paper_comparison
-from surffin.analysis.sensitivity import run_sensitivity
+from surffin.analysis.diagnostics import calibration_report
+from surffin.analysis.reproduction import write_comparison
+from surffin.analysis.sensitivity import write_sensitivity
 from surffin.analysis.summary import summarise
 from surffin.io.ingest import ingest_item
 from surffin.method.calibration import calibrate
 from surffin.method.classify import training_set
 from surffin.method.roughness import roughness_relation
 from surffin.method.stages import ITEM_CHAIN, labels_stage, roughness_stage
-from surffin.report.figures import run_figures
+from surffin.report.figures import write_figures
 
 __all__ = ["Stage", "STAGES", "CHAIN", "stage_of", "output_path", "input_paths"]
 
@@ -72,10 +72,10 @@ STAGES = {
         Stage("summary", summarise, ("features", "labels", "truth"), "summary.json", 2),
         Stage("roughness_relation", roughness_relation, ("features",), "roughness/relation.json", 1),
         Stage("roughness", roughness_stage, ("features",), "roughness/{scene}.zarr", 1),
-        Stage("figures", run_figures, ("calibration", "training", "summary", "features", "labels"), "figures", 2),
-        Stage("diagnostics", run_calibration_diagnostics, ("calibration", "views"), "diagnostics", 1),
-        Stage("sensitivity", run_sensitivity, (), "sensitivity", 1),
-        Stage("comparison", run_paper_comparison, ("summary", "diagnostics", "sensitivity"), "paper-comparison.md", 2),
+        Stage("figures", write_figures, ("calibration", "training", "summary", "features", "labels"), "figures", 2),
+        Stage("diagnostics", calibration_report, ("calibration", "views"), "diagnostics", 1),
+        Stage("sensitivity", write_sensitivity, (), "sensitivity", 1),
+        Stage("comparison", write_comparison, ("summary", "diagnostics", "sensitivity"), "paper-comparison.md", 2),
     )
 }
 

@@ -18,7 +18,7 @@ from surffin.io.campaign import Calibration, Campaign, read_campaign
 from surffin.method.calibration import calibration_set
 from surffin.method.roughness import MIN_SPECIMENS
 from surffin.pipeline.parameters import aoi_parameters, feature_parameters
-from surffin.pipeline.run import check_calibration
+from surffin.method.calibration import check_calibration
 from surffin.pipeline.table import output_path
 
 __all__ = ["Plan"]

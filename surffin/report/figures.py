@@ -16,11 +16,10 @@ matplotlib writes):
 | :func:`accuracy_table` | section 5.2 | ``summary.json`` |
 
 Tables are pandas DataFrames; :func:`write_table` writes one as HTML or CSV.
-:func:`run_figures` opens the stores and writes the files a workflow rule asks
-for. Figures are drawn on :class:`matplotlib.figure.Figure` objects, never
-through pyplot: no global figure registry and no display, so they render with
-the Agg canvas from any thread or job. Matplotlib is imported only when a
-figure is drawn.
+:func:`write_figures` opens the stores and writes the files a workflow rule asks
+for (its job: :func:`surffin.pipeline.analyses.run_figures`). Figures are drawn
+on the canvas of :mod:`surffin.report.canvas`: matplotlib Figures without
+pyplot, matplotlib imported only when a figure is drawn.
 
 Class colours are the same in every figure: the i-th class of the sorted class
 list (the label order of :mod:`surffin.method.classify`) takes the i-th colour of
@@ -40,15 +39,17 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from surffin.method.calibration import TERMS, calibration_diagnostics, instrument_function
 from surffin.grid import Roi
+from surffin.method.calibration import TERMS, calibration_diagnostics, instrument_function
 from surffin.method.classify import FEATURES, UNCLASSIFIED
 from surffin.method.features import UNCERTAINTY, select_roi, smooth
 from surffin.method.scattering import scattering_model
+from surffin.paper import MEAN_R2 as PAPER_MEAN_R2
+from surffin.paper import VARIABILITY_PERCENT as PAPER_VARIABILITY
+from surffin.report.canvas import colormap, figure, message, save, subsample
 
 __all__ = [
-    "DPI",
-    "PAPER_VARIABILITY",
+    "FIGURE_INPUTS",
     "FIGURE_KINDS",
     "plot_calibration_fit",
     "plot_r2_map",
@@ -60,16 +61,14 @@ __all__ = [
     "plot_roughness",
     "accuracy_table",
     "write_table",
-    "run_figures",
+    "write_figures",
 ]
 
 log = logging.getLogger("surffin")
 
-#: Resolution of the written images, dots per inch.
-DPI = 120
-#: The paper's variability (%) of each calibration coefficient across the image (section 3.3).
-PAPER_VARIABILITY = {"A": 8.94, "B": 3.92, "C": 1.79, "D": 1.38, "E": 4.44}
-#: What :func:`run_figures` can write: output kind -> the inputs it needs.
+#: The inputs :func:`write_figures` opens, by name.
+FIGURE_INPUTS = ("calibration", "training", "summary", "features", "registered", "labels", "ingest", "roughness")
+#: What :func:`write_figures` can write: output kind -> the inputs it needs.
 FIGURE_KINDS = {
     "calibration_fit": ("calibration",),
     "calibration_r2": ("calibration",),
@@ -94,27 +93,6 @@ _RANGE = (2, 98)
 
 
 # --- helpers ----------------------------------------------------------------------------------
-
-
-def _figure(width: float, height: float, layout: str | None = "constrained"):
-    """A new matplotlib Figure of ``width`` x ``height`` inches, constrained layout unless told."""
-    from matplotlib.figure import Figure
-
-    return Figure(figsize=(width, height), layout=layout)
-
-
-def _save(fig, path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI, pil_kwargs={"compress_level": 1})
-    return path
-
-
-def _colormap(name: str, bad: str = "0.8"):
-    """A copy of a matplotlib colormap drawing NaN (missing pixels) in ``bad``."""
-    import matplotlib
-
-    return matplotlib.colormaps[name].with_extremes(bad=bad)
 
 
 def _class_colours(classes: Sequence[str]) -> dict[str, tuple]:
@@ -148,7 +126,7 @@ def _image(ax, da: xr.DataArray, title: str, label: str, cmap: str, limits=None,
     low, high = limits if limits is not None else _robust_range(da.values)
     norm = LogNorm(low, high) if log_scale and low is not None and low > 0 else Normalize(low, high)
     shown = ax.imshow(
-        da.transpose("y", "x").values, cmap=_colormap(cmap), norm=norm, extent=_extent(da), interpolation="nearest"
+        da.transpose("y", "x").values, cmap=colormap(cmap), norm=norm, extent=_extent(da), interpolation="nearest"
     )
     ax.set_title(title)
     ax.set_xlabel("sensor column x (px)")
@@ -169,13 +147,6 @@ def _roi_box(ax, roi: Roi | None) -> None:
     )
 
 
-def _subsample(count: int, limit: int, seed: int = 0) -> np.ndarray:
-    """Sorted indices of at most ``limit`` of ``count`` items (all of them when few enough)."""
-    if count <= limit:
-        return np.arange(count)
-    return np.sort(np.random.default_rng(seed).choice(count, limit, replace=False))
-
-
 def _polar_quadrant(ax, r_max: float) -> None:
     """A polar axis from AOI 0 (up) to 90 deg (right), radius = reflectance."""
     ax.set_theta_zero_location("N")
@@ -185,17 +156,6 @@ def _polar_quadrant(ax, r_max: float) -> None:
     ax.set_rmax(r_max)
     ax.set_xlabel("reflectance R (radius) at angle of incidence θ", labelpad=8)
     ax.grid(True, alpha=0.5)
-
-
-def _message(path, title: str, text: str) -> Path:
-    """A figure that says why it has no content (e.g. an input made by an older surffin)."""
-    fig = _figure(8, 3)
-    ax = fig.add_subplot()
-    ax.axis("off")
-    ax.set_title(title)
-    ax.text(0.5, 0.5, text, ha="center", va="center", wrap=True, fontsize=11)
-    log.warning("%s: %s", title, text)
-    return _save(fig, path)
 
 
 def _calibration_samples(calibration: xr.Dataset, variable: str) -> bool:
@@ -237,7 +197,7 @@ def plot_calibration_fit(calibration: xr.Dataset, path: str | os.PathLike) -> Pa
         ``path``.
     """
     if not _calibration_samples(calibration, "sample_obs"):
-        return _message(path, "Calibration fit of sample pixels", _NO_SAMPLES.format(variable="sample_obs"))
+        return message(path, "Calibration fit of sample pixels", _NO_SAMPLES.format(variable="sample_obs"))
     obs = calibration["sample_obs"].load()
     rows, columns = obs["sample_y"].values, obs["sample_x"].values
     pixels = {"y": xr.DataArray(rows, dims="sample_pixel"), "x": xr.DataArray(columns, dims="sample_pixel")}
@@ -249,7 +209,7 @@ def plot_calibration_fit(calibration: xr.Dataset, path: str | os.PathLike) -> Pa
     ok = np.isfinite(corrected)
     d_grid = np.linspace(np.nanmin(distance) * 0.97, np.nanmax(distance) * 1.03, 60)
     t_grid = np.linspace(0.0, np.nanmax(aoi) * 1.03, 60)
-    fig = _figure(18.0, 5.8)
+    fig = figure(18.0, 5.8)
     surface = fig.add_subplot(1, 3, 1, projection="3d")
     surface.set_box_aspect(None, zoom=0.82)
     first = ok[0]
@@ -284,7 +244,7 @@ def plot_calibration_fit(calibration: xr.Dataset, path: str | os.PathLike) -> Pa
     for ax in (by_distance, by_angle):
         ax.grid(True, alpha=0.3)
     fig.suptitle("Calibration fit (eq. 5) of sample pixels to the Lambert-corrected wall intensity I / cos θ")
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def plot_r2_map(calibration: xr.Dataset, path: str | os.PathLike) -> Path:
@@ -304,10 +264,10 @@ def plot_r2_map(calibration: xr.Dataset, path: str | os.PathLike) -> Path:
     fitted = (calibration["status"] == 0).values
     values = r2.values[fitted]
     low = float(np.percentile(values, 1)) if values.size else 0.0
-    fig = _figure(8.5, 6.0)
+    fig = figure(8.5, 6.0)
     ax = fig.add_subplot()
     mean = f"{values.mean():.4f}" if values.size else "n/a"
-    _image(ax, r2, f"Calibration fit: R² per pixel (mean {mean}, paper 0.98; {values.size} of {fitted.size} "
+    _image(ax, r2, f"Calibration fit: R² per pixel (mean {mean}, paper {PAPER_MEAN_R2:g}; {values.size} of {fitted.size} "
            "pixels fitted, grey: none)", "coefficient of determination R²", "viridis", (low, 1.0))
     if "sample_y" in calibration.coords:
         ys, xs = calibration["sample_y"].values, calibration["sample_x"].values
@@ -316,7 +276,7 @@ def plot_r2_map(calibration: xr.Dataset, path: str | os.PathLike) -> Path:
             ax.annotate(str(index + 1), (x, y), xytext=(5, 5), textcoords="offset points", color="red",
                         fontsize=11, fontweight="bold")
     ax.title.set_fontsize(10)
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def parameter_table(calibration: xr.Dataset) -> pd.DataFrame:
@@ -346,7 +306,7 @@ def parameter_table(calibration: xr.Dataset) -> pd.DataFrame:
         "title": "Calibration coefficients: correlation across pixels and variability (paper Table 2)",
         "notes": [
             f"{diagnostics['n_fitted']} of {diagnostics['n_pixels']} pixels fitted; mean R² "
-            f"{diagnostics['mean_r2']:.4f}, median {diagnostics['median_r2']:.4f} (paper: mean 0.98).",
+            f"{diagnostics['mean_r2']:.4f}, median {diagnostics['median_r2']:.4f} (paper: mean {PAPER_MEAN_R2:g}).",
             "f = (A + B/d²)(C θ² + D θ + E), d in m, θ in rad, gauge E = 1: E does not vary, so its "
             "correlations are undefined (blank) and its variability is 0.",
         ],
@@ -376,12 +336,12 @@ def plot_wall_reflectance(calibration: xr.Dataset, path: str | os.PathLike) -> P
     Path
     """
     if not (_calibration_samples(calibration, "wall_obs") and "wall_image" in calibration):
-        return _message(path, "Reflectance of the calibration wall", _NO_SAMPLES.format(variable="wall_obs"))
+        return message(path, "Reflectance of the calibration wall", _NO_SAMPLES.format(variable="wall_obs"))
     rho = 1.0 / float(calibration.attrs["scale_k"])
     image = calibration["wall_image"].astype(np.float64).load()
     deviation = 100.0 * (image.sel(quantity="reflectance") / (rho * np.cos(image.sel(quantity="aoi"))) - 1.0)
     size = 2 * (min(deviation.shape) // 40) + 1
-    fig = _figure(15.0, 9.0)
+    fig = figure(15.0, 9.0)
     grid = fig.add_gridspec(2, 2, width_ratios=(1.0, 0.9))
     view = image.attrs.get("view", "")
     for row, (shown, title) in enumerate(
@@ -396,7 +356,7 @@ def plot_wall_reflectance(calibration: xr.Dataset, path: str | os.PathLike) -> P
     obs = calibration["wall_obs"].load()
     aoi, reflectance = obs.sel(quantity="aoi").values, obs.sel(quantity="reflectance").values
     ok = np.isfinite(aoi) & np.isfinite(reflectance)
-    chosen = np.flatnonzero(ok)[_subsample(int(ok.sum()), _MAX_POINTS)]
+    chosen = np.flatnonzero(ok)[subsample(int(ok.sum()), _MAX_POINTS)]
     polar = fig.add_subplot(grid[:, 1], projection="polar")
     polar.scatter(aoi[chosen], reflectance[chosen], s=4, alpha=0.35, color="tab:blue",
                   label=f"wall pixels ({chosen.size} of {obs.sizes['wall_sample']} samples, "
@@ -409,7 +369,7 @@ def plot_wall_reflectance(calibration: xr.Dataset, path: str | os.PathLike) -> P
     polar.set_title("reflectance vs angle of incidence θ (deg) of the calibration wall")
     polar.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), fontsize=9, markerscale=4)
     fig.suptitle("Calibrated reflectance of the calibration wall against an ideal Lambertian surface")
-    return _save(fig, path)
+    return save(fig, path)
 
 
 # --- items and the training set ----------------------------------------------------------------
@@ -446,7 +406,7 @@ def plot_features(
     features = features[[*FEATURES, *(name for name in uncertainties if name in features)]].load()
     region = features if roi is None else select_roi(features, roi)
     # A fixed layout: the constrained one took 0.7 of this figure's ~2 s, and the figure is drawn for every item.
-    fig = _figure(19.0, 9.5, layout=None)
+    fig = figure(19.0, 9.5, layout=None)
     spacing = {"left": 0.04, "right": 0.97, "top": 0.91, "bottom": 0.15, "wspace": 0.25, "hspace": 0.3}
     axes = fig.subplots(2, 3, gridspec_kw=spacing)
     panels = (
@@ -476,7 +436,7 @@ def plot_features(
         aoi = both["aoi"].sel(view=view).values.ravel()
         reflectance = both["reflectance"].sel(view=view).values.ravel()
         ok = np.flatnonzero(np.isfinite(aoi) & np.isfinite(reflectance))
-        chosen = ok[_subsample(ok.size, _MAX_POINTS // both.sizes["view"], seed=index)]
+        chosen = ok[subsample(ok.size, _MAX_POINTS // both.sizes["view"], seed=index)]
         polar.scatter(aoi[chosen], reflectance[chosen], s=3, alpha=0.3, label=f"view {view}")
         if chosen.size:
             r_max = max(r_max, float(np.percentile(reflectance[chosen], 99.5)))
@@ -495,7 +455,7 @@ def plot_features(
     if "uncertainty_effective_pixels" in attrs:
         title += f"; uncertainties for {attrs['uncertainty_effective_pixels']:.1f} effectively independent px per window"
     fig.suptitle(title)
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def plot_feature_space(training: xr.Dataset, path: str | os.PathLike) -> Path:
@@ -524,11 +484,11 @@ def plot_feature_space(training: xr.Dataset, path: str | os.PathLike) -> Path:
     pairs = (("n", "R0"), ("variability", "R0"), ("variability", "n"))
     names = {"R0": "R0 (reflectance at normal incidence)", "n": "n (scattering coefficient)",
              "variability": "spatial reflectance variability"}
-    fig = _figure(16.0, 5.4)
+    fig = figure(16.0, 5.4)
     axes = fig.subplots(1, 3)
     for seed, name in enumerate(classes):
         members = np.flatnonzero(labels == name)
-        chosen = members[_subsample(members.size, _MAX_POINTS, seed=seed)]
+        chosen = members[subsample(members.size, _MAX_POINTS, seed=seed)]
         for ax, (x_name, y_name) in zip(axes, pairs):
             x, y = values[chosen, column[x_name]], values[chosen, column[y_name]]
             ax.scatter(x, y, s=3, alpha=0.25, color=colours[name], rasterized=True)
@@ -541,7 +501,7 @@ def plot_feature_space(training: xr.Dataset, path: str | os.PathLike) -> Path:
         ax.grid(True, alpha=0.3)
     axes[0].legend(title="class (median ✕)", fontsize=9)
     fig.suptitle(f"Feature space of the training specimens ({', '.join(training.attrs.get('items', []))})")
-    return _save(fig, path)
+    return save(fig, path)
 
 
 # --- scenes ------------------------------------------------------------------------------------
@@ -592,11 +552,11 @@ def plot_labels(
         "label": "k-NN labels",
         "label_filtered": f"after the {filtered.get('filter', '')} filter ({size}x{size} px)",
     }
-    fig = _figure(14.0, 4.6)
+    fig = figure(14.0, 4.6)
     axes = fig.subplots(1, 2)
     for ax, variable in zip(axes, ("label", "label_filtered")):
         label = labels[variable]
-        ax.imshow(background.values, cmap=_colormap("gray", bad="black"), vmin=low, vmax=high,
+        ax.imshow(background.values, cmap=colormap("gray", bad="black"), vmin=low, vmax=high,
                   extent=_extent(label), interpolation="nearest")
         overlay = np.zeros((*label.shape, 4))
         overlay[label.values == UNCLASSIFIED] = _UNCLASSIFIED_COLOUR
@@ -619,7 +579,7 @@ def plot_labels(
         total = int((labels["label"].values == UNCLASSIFIED).sum())
         fig.supxlabel(f"unclassified pixels (both panels, black): {total} of {labels['label'].size}: {counts}",
                       fontsize=9)
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def plot_roughness(roughness: xr.Dataset, path: str | os.PathLike) -> Path:
@@ -638,7 +598,7 @@ def plot_roughness(roughness: xr.Dataset, path: str | os.PathLike) -> Path:
     """
     roughness = roughness.load()
     relation = roughness.attrs["surffin_parameters"]["relation"]
-    fig = _figure(13.0, 4.8)
+    fig = figure(13.0, 4.8)
     left, right = fig.subplots(1, 2, width_ratios=(1.6, 1))
     inside = roughness["roughness"].where(~roughness["extrapolated"])
     limits = _robust_range(inside.values)
@@ -661,7 +621,7 @@ def plot_roughness(roughness: xr.Dataset, path: str | os.PathLike) -> Path:
     right.legend(loc="best", fontsize=8)
     right.grid(alpha=0.3)
     fig.suptitle(f"Scene {roughness.attrs.get('item', '')}: roughness from n (indicative, not a measurement)")
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def accuracy_table(summary: Mapping) -> pd.DataFrame:
@@ -729,7 +689,7 @@ def write_table(table: pd.DataFrame, path: str | os.PathLike) -> Path:
     return path
 
 
-# --- the workflow's entry ------------------------------------------------------------------------
+# --- the requested files --------------------------------------------------------------------------
 
 
 def _paths(value) -> list[str]:
@@ -737,21 +697,15 @@ def _paths(value) -> list[str]:
     return [value] if isinstance(value, str | os.PathLike) else [str(v) for v in value]
 
 
-def run_figures(
+def write_figures(
     outputs: Mapping[str, str | os.PathLike | Sequence[str | os.PathLike]],
+    inputs: Mapping[str, str | os.PathLike | None],
     *,
-    calibration: str | os.PathLike | None = None,
-    training: str | os.PathLike | None = None,
-    summary: str | os.PathLike | None = None,
-    features: str | os.PathLike | None = None,
-    registered: str | os.PathLike | None = None,
-    labels: str | os.PathLike | None = None,
-    ingest: str | os.PathLike | None = None,
-    roughness: str | os.PathLike | None = None,
     roi: Roi | Mapping | None = None,
-    log_path: str | os.PathLike | None = None,
 ) -> list[Path]:
     """Open the stores and write the requested figures and tables.
+
+    The workflow's job is :func:`surffin.pipeline.analyses.run_figures`.
 
     Parameters
     ----------
@@ -759,19 +713,15 @@ def run_figures(
         Kind (a key of :data:`FIGURE_KINDS`) -> one path or a list of paths.
         Figures take the image format of each path's suffix (PNG); tables are
         written as HTML for ``.html`` and as CSV otherwise.
-    calibration, training, summary : path-like, optional
-        The calibration store, the training store, ``summary.json``.
-    features, registered : path-like, optional
-        One item's features and registered stores (kind ``features``).
-    labels, ingest : path-like, optional
-        One scene's labels and ingest stores (kind ``labels``; with
-        ``summary``, the accuracy appears in the titles).
-    roughness : path-like, optional
-        One scene's roughness store (kind ``roughness``).
+    inputs : mapping
+        Name (of :data:`FIGURE_INPUTS`) -> path, None or left out where not
+        given: ``calibration``, ``training`` (the stores), ``summary``
+        (``summary.json``); ``features``, ``registered`` (one item's stores,
+        kind ``features``); ``labels``, ``ingest`` (one scene's stores, kind
+        ``labels``; with ``summary``, the accuracy appears in the titles);
+        ``roughness`` (one scene's roughness store, kind ``roughness``).
     roi : Roi or {"y": [a, b], "x": [c, d]}, optional
         The item's roi (kind ``features``).
-    log_path : path-like, optional
-        The job's log file.
 
     Returns
     -------
@@ -781,42 +731,41 @@ def run_figures(
     Raises
     ------
     ValueError
-        An unknown kind, or a kind whose inputs are not given.
+        An unknown kind or input, or a kind whose inputs are not given.
     """
-    from surffin.pipeline.jobs import logging_to
     from surffin.io.store import open_store
 
-    given = {"calibration": calibration, "training": training, "summary": summary, "features": features,
-             "registered": registered, "labels": labels, "ingest": ingest, "roughness": roughness}
+    if unknown := set(inputs) - set(FIGURE_INPUTS):
+        raise ValueError(f"unknown figure inputs {sorted(unknown)}; known: {list(FIGURE_INPUTS)}")
+    given = {name: inputs.get(name) for name in FIGURE_INPUTS}
     for kind in outputs:
         if kind not in FIGURE_KINDS:
             raise ValueError(f"unknown figure kind {kind!r}; known: {sorted(FIGURE_KINDS)}")
         missing = [name for name in FIGURE_KINDS[kind] if given[name] is None]
         if missing:
             raise ValueError(f"figure {kind!r} needs {missing}")
-    with logging_to(log_path):
-        opened = {
-            name: open_store(path) for name, path in given.items() if path is not None and name != "summary"
-        }
-        if summary is not None:
-            opened["summary"] = json.loads(Path(summary).read_text())
-        scene = opened["labels"].attrs.get("item") if "labels" in opened else None
-        makers = {
-            "calibration_fit": lambda path: plot_calibration_fit(opened["calibration"], path),
-            "calibration_r2": lambda path: plot_r2_map(opened["calibration"], path),
-            "calibration_table": lambda path: write_table(parameter_table(opened["calibration"]), path),
-            "wall_reflectance": lambda path: plot_wall_reflectance(opened["calibration"], path),
-            "feature_space": lambda path: plot_feature_space(opened["training"], path),
-            "accuracy_table": lambda path: write_table(accuracy_table(opened["summary"]), path),
-            "features": lambda path: plot_features(opened["features"], opened["registered"], path, roi=Roi.from_mapping(roi)),
-            "labels": lambda path: plot_labels(
-                opened["labels"], opened["ingest"], path, scores=opened.get("summary", {}).get("scenes", {}).get(scene)
-            ),
-            "roughness": lambda path: plot_roughness(opened["roughness"], path),
-        }
-        written = []
-        for kind, value in outputs.items():
-            for path in _paths(value):
-                written.append(makers[kind](path))
-                log.info("figures: wrote %s (%s)", path, kind)
-        return written
+    opened = {
+        name: open_store(path) for name, path in given.items() if path is not None and name != "summary"
+    }
+    if given["summary"] is not None:
+        opened["summary"] = json.loads(Path(given["summary"]).read_text())
+    scene = opened["labels"].attrs.get("item") if "labels" in opened else None
+    makers = {
+        "calibration_fit": lambda path: plot_calibration_fit(opened["calibration"], path),
+        "calibration_r2": lambda path: plot_r2_map(opened["calibration"], path),
+        "calibration_table": lambda path: write_table(parameter_table(opened["calibration"]), path),
+        "wall_reflectance": lambda path: plot_wall_reflectance(opened["calibration"], path),
+        "feature_space": lambda path: plot_feature_space(opened["training"], path),
+        "accuracy_table": lambda path: write_table(accuracy_table(opened["summary"]), path),
+        "features": lambda path: plot_features(opened["features"], opened["registered"], path, roi=Roi.from_mapping(roi)),
+        "labels": lambda path: plot_labels(
+            opened["labels"], opened["ingest"], path, scores=opened.get("summary", {}).get("scenes", {}).get(scene)
+        ),
+        "roughness": lambda path: plot_roughness(opened["roughness"], path),
+    }
+    written = []
+    for kind, value in outputs.items():
+        for path in _paths(value):
+            written.append(makers[kind](path))
+            log.info("figures: wrote %s (%s)", path, kind)
+    return written

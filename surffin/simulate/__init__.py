@@ -26,8 +26,8 @@ import importlib
 
 _LAZY = {
     "simulate_campaign": "acquire",
-    "FORMATS": "command",
-    "UNITS": "command",
+    "FORMATS": "validation",
+    "UNITS": "validation",
     "cli_parser": "command",
     "cli_run": "command",
     "Acquisition": "plan",

@@ -22,7 +22,6 @@ import numpy as np
 import yaml
 
 from surffin.errors import CampaignError
-from surffin.simulate.command import FORMATS, UNITS
 from surffin.simulate.instrument import Instrument, draw_instrument, observe
 from surffin.simulate.plan import Acquisition, plan_campaign
 from surffin.simulate.presets import PRESETS, Preset
@@ -33,6 +32,7 @@ from surffin.simulate.truth import (
     reference_coordinates,
     scene_truth_label,
 )
+from surffin.simulate.validation import FORMATS, UNITS
 from surffin.io.store import provenance, write_store
 from surffin.io.files import write_atomically
 from surffin.io.viewfile import VIEW_SUFFIXES, write_view

@@ -15,14 +15,9 @@ import argparse
 from dataclasses import replace
 
 from surffin.simulate.presets import PRESETS
-from surffin.simulate.validation import VALIDATION, Validation
+from surffin.simulate.validation import FORMATS, UNITS, VALIDATION, Validation
 
-__all__ = ["FORMATS", "UNITS", "cli_parser", "cli_run"]
-
-#: Values of ``fmt``: one view file form for all views, or ``mixed`` (npz, ply, raw in turn).
-FORMATS = ("npz", "ply", "raw", "mixed")
-#: Units of xyz in npz and ply view files.
-UNITS = ("m", "mm")
+__all__ = ["cli_parser", "cli_run"]
 
 
 def cli_parser(parser: argparse.ArgumentParser) -> None:

@@ -36,7 +36,12 @@ from surffin.simulate.presets import (
     class_material,
 )
 
-__all__ = ["VALIDATION", "Validation"]
+__all__ = ["FORMATS", "UNITS", "VALIDATION", "Validation"]
+
+#: Values of ``fmt``: one view file form for all views, or ``mixed`` (npz, ply, raw in turn).
+FORMATS = ("npz", "ply", "raw", "mixed")
+#: Units of xyz in npz and ply view files.
+UNITS = ("m", "mm")
 
 _CAMERA = PinholeCamera(width=640, height=480, fx=565.0, fy=579.0)
 _CROP = ((80, 400), (80, 560))

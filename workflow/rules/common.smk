@@ -20,10 +20,7 @@ from surffin.pipeline.run import (
 )
 from surffin.pipeline.table import CHAIN, STAGES, input_paths, output_path
 from surffin.pipeline.workflow import Plan
-from surffin.report.figures import run_figures
-from surffin.analysis.diagnostics import run_calibration_diagnostics
-from surffin.analysis.reproduction import run_paper_comparison
-from surffin.analysis.sensitivity import run_sensitivity
+from surffin.pipeline.analyses import run_calibration_diagnostics, run_figures, run_paper_comparison, run_sensitivity
 
 validate(config, "../schemas/config.schema.yaml")
 

@@ -21,9 +21,10 @@ rule ingest:
     params:
         campaign=str(CAMPAIGN),
         settings=from_plan("item_settings", "item"),
+        chunks=config["chunks"],
         code=STAGES["ingest"].version,
     run:
-        run_ingest(params.campaign, wildcards.item, output[0], chunks=config["chunks"], log_path=log[0])
+        run_ingest(params.campaign, wildcards.item, output[0], chunks=params.chunks, log_path=log[0])
 
 
 rule aoi:

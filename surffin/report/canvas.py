@@ -1,0 +1,127 @@
+"""The drawing surface of the report's figures: matplotlib Figures without pyplot, and how they are saved.
+
+Figures are drawn on :class:`matplotlib.figure.Figure` objects, never through
+pyplot: no global figure registry and no display, so they render with the Agg
+canvas from any thread or job. Matplotlib is imported only when a figure is
+drawn.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["DPI", "figure", "save", "colormap", "subsample", "message"]
+
+log = logging.getLogger("surffin")
+
+#: Resolution of the written images, dots per inch.
+DPI = 120
+
+
+def figure(width: float, height: float, layout: str | None = "constrained"):
+    """A new matplotlib Figure.
+
+    Parameters
+    ----------
+    width, height : float
+        Size, inches.
+    layout : str or None
+        Matplotlib's layout engine; default constrained.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=(width, height), layout=layout)
+
+
+def save(fig, path: str | os.PathLike) -> Path:
+    """Write a figure at :data:`DPI`, in the image format of the path's suffix (PNG: fast compression).
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+    path : path-like
+        The image to write; its folder is made.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=DPI, pil_kwargs={"compress_level": 1})
+    return path
+
+
+def colormap(name: str, bad: str = "0.8"):
+    """A copy of a matplotlib colormap that draws NaN (missing pixels) in another colour.
+
+    Parameters
+    ----------
+    name : str
+        A matplotlib colormap.
+    bad : str
+        Matplotlib colour of NaN; default light grey.
+
+    Returns
+    -------
+    matplotlib.colors.Colormap
+    """
+    import matplotlib
+
+    return matplotlib.colormaps[name].with_extremes(bad=bad)
+
+
+def subsample(count: int, limit: int, seed: int = 0) -> np.ndarray:
+    """Sorted indices of at most ``limit`` of ``count`` items, drawn at random (all of them when few enough).
+
+    Parameters
+    ----------
+    count : int
+        Items there are.
+    limit : int
+        Most items drawn.
+    seed : int
+        Seed of the draw.
+
+    Returns
+    -------
+    ndarray of int
+    """
+    if count <= limit:
+        return np.arange(count)
+    return np.sort(np.random.default_rng(seed).choice(count, limit, replace=False))
+
+
+def message(path: str | os.PathLike, title: str, text: str) -> Path:
+    """A figure that says why it has no content (e.g. an input made by an older surffin), logged as a warning.
+
+    Parameters
+    ----------
+    path : path-like
+        The image to write.
+    title : str
+        The figure's title.
+    text : str
+        Why it has no content.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    fig = figure(8, 3)
+    ax = fig.add_subplot()
+    ax.axis("off")
+    ax.set_title(title)
+    ax.text(0.5, 0.5, text, ha="center", va="center", wrap=True, fontsize=11)
+    log.warning("%s: %s", title, text)
+    return save(fig, path)
