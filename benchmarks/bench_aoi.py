@@ -71,14 +71,14 @@ def scene(distance: float = 0.8, tilt: float = 25.0, specimen: bool = True, seed
 
 
 def error_degrees(xyz: np.ndarray, truth: np.ndarray, support: tuple[int, int]) -> tuple[np.ndarray, float]:
-    """aoi - truth (degrees) where the kernel gives an AOI, and the share of pixels without one."""
+    """Aoi - truth (degrees) where the kernel gives an AOI, and the share of pixels without one."""
     aoi, _ = frame_angle_of_incidence(xyz, support[0], max_window=support[1])
     has = np.isfinite(aoi)
     return np.rad2deg((aoi - truth)[has]), 1.0 - has.mean()
 
 
 def pca_error_degrees(xyz: np.ndarray, truth: np.ndarray, window: int, sample: int) -> np.ndarray:
-    """aoi - truth (degrees) of PCA planes through the centred windows of ``sample`` random pixels."""
+    """Aoi - truth (degrees) of PCA planes through the centred windows of ``sample`` random pixels."""
     rng = np.random.default_rng(2)
     half = window // 2
     rows = rng.integers(half, HEIGHT - half, sample)
@@ -94,7 +94,7 @@ def pca_error_degrees(xyz: np.ndarray, truth: np.ndarray, window: int, sample: i
 
 
 def kdtree_seconds_per_frame(xyz: np.ndarray, k: int, subset: int, repeat: int) -> float:
-    """cKDTree PCA normals: tree build + k-NN query + batched eigh, extrapolated to a frame."""
+    """CKDTree PCA normals: tree build + k-NN query + batched eigh, extrapolated to a frame."""
     points = xyz.reshape(-1, 3).astype(np.float64)
     chosen = np.random.default_rng(1).choice(len(points), subset, replace=False)
 

@@ -39,8 +39,8 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from surffin.io.campaign import read_campaign
 from surffin.errors import RegistrationError
+from surffin.io.campaign import read_campaign
 from surffin.io.ingest import ingest_item
 from surffin.method.registration import DETECTORS, register, registration_error, registration_maps
 from surffin.simulate import simulate_campaign
@@ -70,7 +70,8 @@ def timed_maps(ingest, **kwargs):
 
 def errors(maps, truth):
     """Median error per non-reference view over all mapped pixels and over specimen tops,
-    the error (view, y, x) of those views and the specimen-top mask (y, x)."""
+    the error (view, y, x) of those views and the specimen-top mask (y, x).
+    """
     error = registration_error(maps, truth["u_ref"], truth["v_ref"]).isel(view=slice(1, None))
     top = truth["label"].sel(y=maps["y"], x=maps["x"]) >= 0
     return error.median(("y", "x")).values, error.where(top).median(("y", "x")).values, error, top
@@ -161,8 +162,10 @@ def runtime_table(items, repeat: int) -> None:
             register(ds, maps)
             best["register"] = min(best.get("register", np.inf), time.perf_counter() - start)
         grid = f"{ingest.sizes['y']}x{ingest.sizes['x']}"
-        print(f"{name:5} {ingest.sizes['view']:5} {grid:>9} {best['poses']:10.2f} {best['homography']:15.2f} "
-              f"{best['register']:9.3f}")
+        print(
+            f"{name:5} {ingest.sizes['view']:5} {grid:>9} {best['poses']:10.2f} {best['homography']:15.2f} "
+            f"{best['register']:9.3f}"
+        )
 
 
 def smoothing_table(items, windows=(1, 3, 5, 7, 9, 11, 15)) -> None:

@@ -27,18 +27,16 @@ from pathlib import Path
 
 import dask
 import xarray as xr
-
-from surffin.pipeline import parameters
-from surffin.method.calibration import calibrate
-from surffin.io.campaign import read_truth
-from surffin.method.classify import score, training_set
-from surffin.method.features import UNCERTAINTY, smooth_uncertainty
-from surffin.io.ingest import ingest_item
-from surffin.method.stages import labels_stage, process_item
-from surffin.analysis.uncertainty import coverage
-
 from _paper import paper_campaign  # benchmarks/_paper.py: this folder is on sys.path when run as a script
 
+from surffin.analysis.uncertainty import coverage
+from surffin.io.campaign import read_truth
+from surffin.io.ingest import ingest_item
+from surffin.method.calibration import calibrate
+from surffin.method.classify import score, training_set
+from surffin.method.features import UNCERTAINTY, smooth_uncertainty
+from surffin.method.stages import labels_stage, process_item
+from surffin.pipeline import parameters
 
 
 def propagated(feats: xr.Dataset, inflation: float) -> xr.Dataset:
@@ -80,17 +78,25 @@ def main():
                 name: process_item(ingest_item(camp, name), calibration, roi=item.roi, **item_params)["features"]
                 for name, item in camp.items.items()
             }
-        header = f"{'':28s}" + "".join(f"{name + ' 1u':>10s}{name + ' 2u':>10s}{name + ' scale':>10s}" for name in UNCERTAINTY)
-        print("share of scored pixels with |error| <= 1 and 2 uncertainties; scale: 1.4826 median |error| / uncertainty")
+        header = f"{'':28s}" + "".join(
+            f"{name + ' 1u':>10s}{name + ' 2u':>10s}{name + ' scale':>10s}" for name in UNCERTAINTY
+        )
+        print(
+            "share of scored pixels with |error| <= 1 and 2 uncertainties; scale: 1.4826 median |error| / uncertainty"
+        )
         for name, feats in features.items():
             truth = xr.open_zarr(truth_dir / f"{name}.zarr")
             scored = (truth["edge_distance"] >= truth.attrs["label_margin"]) & (truth["surface"] >= 0)
             fit = coverage(feats, truth, mask=scored, unsmoothed=True)
-            expected = {key: {**value, "within_1": value["expected_1"], "within_2": value["expected_2"], "z_scale": math.nan}
-                        for key, value in fit.items()}
+            expected = {
+                key: {**value, "within_1": value["expected_1"], "within_2": value["expected_2"], "z_scale": math.nan}
+                for key, value in fit.items()
+            }
             inflation = feats.attrs.get("uncertainty_inflation", math.inf)
-            print(f"\n{name}: {fit['R0']['n_pixels']} fitted pixels scored; residual correlation F = {inflation:.2f} "
-                  f"({feats.attrs.get('uncertainty_effective_pixels', math.nan):.2f} effectively independent pixels)")
+            print(
+                f"\n{name}: {fit['R0']['n_pixels']} fitted pixels scored; residual correlation F = {inflation:.2f} "
+                f"({feats.attrs.get('uncertainty_effective_pixels', math.nan):.2f} effectively independent pixels)"
+            )
             print(header)
             print(row("fit sigma", fit))
             print(row("  Student t expected", expected))
@@ -105,13 +111,19 @@ def main():
             for label, options in (
                 ("no reject", {}),
                 (f"min_posterior {bounds['min_posterior']}", {"min_posterior": bounds["min_posterior"]}),
-                (f"  + outlier_probability {bounds['outlier_probability']}", {
-                    "min_posterior": bounds["min_posterior"], "outlier_probability": bounds["outlier_probability"]}),
+                (
+                    f"  + outlier_probability {bounds['outlier_probability']}",
+                    {"min_posterior": bounds["min_posterior"], "outlier_probability": bounds["outlier_probability"]},
+                ),
             ):
                 labels = labels_stage(features[name], training, **options)
-                accuracy = [score(labels[v], truth_label, truth_classes, training.attrs["classes"])["accuracy"]
-                            for v in ("label", "label_filtered")]
-                print(f"  {label:40s} {accuracy[0]:.4f} raw, {accuracy[1]:.4f} filtered; {labels['label'].attrs['unclassified']}")
+                accuracy = [
+                    score(labels[v], truth_label, truth_classes, training.attrs["classes"])["accuracy"]
+                    for v in ("label", "label_filtered")
+                ]
+                print(
+                    f"  {label:40s} {accuracy[0]:.4f} raw, {accuracy[1]:.4f} filtered; {labels['label'].attrs['unclassified']}"
+                )
 
 
 if __name__ == "__main__":

@@ -38,8 +38,8 @@ import numpy as np
 import yaml
 
 import surffin
-from surffin.pipeline import parameters
 from surffin.analysis.evaluation import evaluate_campaign, risk_coverage
+from surffin.pipeline import parameters
 
 ROWS = ("cal %", "R0 %", "n %", "ceil R0", "ceil n", "missing", "label", "filtered", "unclass", "ceiling", "board rej")
 COVERAGES = (1.0, 0.999, 0.995, 0.99, 0.98, 0.95)
@@ -90,9 +90,13 @@ def row(result: dict) -> dict:
 def evaluate(directory: Path, config: dict) -> dict:
     """:func:`~surffin.analysis.evaluation.evaluate_campaign` with the stage parameters of ``config``."""
     return evaluate_campaign(
-        directory, calibration_params=parameters.calibration_parameters(config), aoi_params=parameters.aoi_parameters(config),
-        feature_params=parameters.feature_parameters(config), label_params=parameters.label_parameters(config),
-        method=config["registration"]["method"], max_per_class=config["classify"]["max_training_samples"],
+        directory,
+        calibration_params=parameters.calibration_parameters(config),
+        aoi_params=parameters.aoi_parameters(config),
+        feature_params=parameters.feature_parameters(config),
+        label_params=parameters.label_parameters(config),
+        method=config["registration"]["method"],
+        max_per_class=config["classify"]["max_training_samples"],
     )
 
 
@@ -142,7 +146,9 @@ def main() -> None:
         correct = np.concatenate([result["correct"] for result in runs])
         curve = risk_coverage(posterior, correct, COVERAGES)
         print(f"{name:26s}" + "".join(f"{100 * error:10.3f}" for error in curve))
-    print("\nposterior calibration: per posterior bin, pixels, predicted error % (mean 1 - posterior), observed error %")
+    print(
+        "\nposterior calibration: per posterior bin, pixels, predicted error % (mean 1 - posterior), observed error %"
+    )
     for name, runs in results.items():
         posterior = np.concatenate([result["posterior"] for result in runs])
         correct = np.concatenate([result["correct"] for result in runs])

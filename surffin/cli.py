@@ -18,7 +18,9 @@ def _check(args: argparse.Namespace) -> int:
     print(f"{camp.path}: campaign {camp.name!r} is valid")
     print(f"  camera {camp.camera.width}x{camp.camera.height}, crop y={camp.crop.y} x={camp.crop.x}")
     if camp.calibration is not None:
-        print(f"  calibration: {len(camp.calibration.wall)} wall views, {len(camp.calibration.reference.views)} reference views")
+        print(
+            f"  calibration: {len(camp.calibration.wall)} wall views, {len(camp.calibration.reference.views)} reference views"
+        )
     for item in camp.items.values():
         label = f"class {item.cls}" if item.cls else "scene"
         print(f"  {item.kind} {item.name} ({label}): {len(item.views)} views, reference {item.reference}")
@@ -65,14 +67,18 @@ def _sensitivity(args: argparse.Namespace) -> int:
     print("std ~ K^slope, K = 2..10 views over 0..45 deg (paper: R0 -0.5, n -1):")
     slopes = views_slopes(table).to_dataframe()
     for (noise, level, sigma), rows in slopes.groupby(["noise", "level", "sigma"], sort=False):
-        fits = ", ".join(f"{r.parameter} {r.slope:+.2f} ± {r.slope_stderr:.2f} (K >= 3: {r.slope_from_3:+.2f})"
-                         for r in rows.itertuples())
+        fits = ", ".join(
+            f"{r.parameter} {r.slope:+.2f} ± {r.slope_stderr:.2f} (K >= 3: {r.slope_from_3:+.2f})"
+            for r in rows.itertuples()
+        )
         print(f"  {noise} {level} (σ {sigma:g}{' deg' if noise == 'aoi' else ''}): {fits}")
     print(f"two views, one at 45 deg: separation from which std < {100 * THRESHOLD:g} % (and no fit fails):")
     summary = separation_summary(table).to_dataframe()
     for (noise, level, sigma), rows in summary.groupby(["noise", "level", "sigma"], sort=False):
-        needed = ", ".join(f"{r.parameter} {r.required_separation_deg:g} deg ({r.no_failures_from_deg:g} deg)"
-                           for r in rows.itertuples())
+        needed = ", ".join(
+            f"{r.parameter} {r.required_separation_deg:g} deg ({r.no_failures_from_deg:g} deg)"
+            for r in rows.itertuples()
+        )
         print(f"  {noise} {level} (σ {sigma:g}{' deg' if noise == 'aoi' else ''}): {needed}")
     return 0
 
@@ -90,7 +96,9 @@ def _parser() -> argparse.ArgumentParser:
 
     check = commands.add_parser("check", help="validate a campaign directory")
     check.add_argument("campaign", help="campaign directory or its campaign.yaml")
-    check.add_argument("--no-calibration", action="store_true", help="the calibration comes from another campaign's store")
+    check.add_argument(
+        "--no-calibration", action="store_true", help="the calibration comes from another campaign's store"
+    )
     check.set_defaults(run=_check)
 
     inspect = commands.add_parser("inspect", help="print what a processed store holds and how it was made")
@@ -101,7 +109,9 @@ def _parser() -> argparse.ArgumentParser:
         "sensitivity", help="Monte Carlo of the scattering fit's sensitivity to noise (paper section 4)"
     )
     sensitivity.add_argument("--out", required=True, help="output folder (table, zarr store, slopes, figures)")
-    sensitivity.add_argument("--draws", type=_whole_number(2), default=500, help="draws per configuration (default 500)")
+    sensitivity.add_argument(
+        "--draws", type=_whole_number(2), default=500, help="draws per configuration (default 500)"
+    )
     sensitivity.add_argument("--seed", type=_whole_number(0), default=0, help="random seed (default 0)")
     sensitivity.set_defaults(run=_sensitivity)
     return parser

@@ -5,14 +5,17 @@ import logging
 
 import dask.array as da
 import numpy as np
-import scipy.ndimage
 import pytest
+import scipy.ndimage
 import xarray as xr
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.optimize import least_squares
 
 import surffin
+from surffin.errors import CalibrationError
+from surffin.grid import Roi
+from surffin.io.store import open_store, write_store
 from surffin.method.calibration import (
     CALIBRATION_STATUS,
     TERMS,
@@ -25,11 +28,8 @@ from surffin.method.calibration import (
     reference_scale,
     reflectance,
 )
-from surffin.grid import Roi
-from surffin.errors import CalibrationError
 from surffin.method.noise import NOISE_VIEWS
 from surffin.simulate import PRESETS, Material
-from surffin.io.store import open_store, write_store
 
 STATUS = {name: code for code, name in CALIBRATION_STATUS.items()}
 TINY = PRESETS["tiny"]
@@ -245,7 +245,9 @@ def test_accumulation_is_order_independent_and_equals_one_shot_sums():
     # moments equal to rounding give fits equal to the fit's own precision (~1e-6 of a
     # coefficient's standard error, from the stopping rule)
     np.testing.assert_allclose(
-        fit_calibration(backward, angular_smoothing=0).coef, fit_calibration(forward, angular_smoothing=0).coef, rtol=1e-6
+        fit_calibration(backward, angular_smoothing=0).coef,
+        fit_calibration(forward, angular_smoothing=0).coef,
+        rtol=1e-6,
     )
 
 
@@ -513,7 +515,9 @@ def test_calibration_measures_the_intensity_noise(campaign):
         assert np.nanmax(measured) < 1e-4
         return
     # the simulator: relative sigma 1.5 % above 2000 counts, growing as 1/sqrt(I) below, capped at 4 %
-    truth = np.clip(TINY.intensity_noise * np.sqrt(TINY.noise_reference / level), TINY.intensity_noise, TINY.intensity_noise_max)
+    truth = np.clip(
+        TINY.intensity_noise * np.sqrt(TINY.noise_reference / level), TINY.intensity_noise, TINY.intensity_noise_max
+    )
     # bins between the cap and the floor, where the formula has no kink inside the bin; measured
     # within 6 % (each pixel's fit takes up part of the noise of the 15 views it was fitted on)
     middle = (level > 300) & (level < 1800) & np.isfinite(measured)

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import yaml
 
+from surffin.errors import CampaignError
 from surffin.grid import Roi
 from surffin.io.campaign import Camera, read_campaign, read_truth
-from surffin.errors import CampaignError
 from surffin.io.viewfile import ABCY16_DEFAULT, write_view
 
 VIEW_FILES = {
@@ -93,7 +93,12 @@ def test_valid_campaign(campaign):
 
     s1, s2, t1 = camp.specimens["S1"], camp.specimens["S2"], camp.scenes["T1"]
     assert (s1.kind, s1.cls, s1.roi, s1.roughness_mm, s1.reference, s1.truth) == (
-        "specimen", "S1", Roi((1, 4), (2, 7)), 0.0068, "v0", None
+        "specimen",
+        "S1",
+        Roi((1, 4), (2, 7)),
+        0.0068,
+        "v0",
+        None,
     )
     assert s1.views == (root.resolve() / "specimens/S1/v0.npz", root.resolve() / "specimens/S1/v1.npz")
     assert s2.view_stems == ("v0", "v1") and s2.reference == "v1" and s2.reference_view.name == "v1.ply"
@@ -234,10 +239,16 @@ BAD = {
     ),
     "bad-class-name": (set_key("specimens.S1.class", "S 1"), r"specimens\.S1\.class: got 'S 1'; expected a name"),
     "numeric-class-name": (set_key("specimens.S1.class", 1), r"specimens\.S1\.class: got 1; .*quote it"),
-    "escaping-path": (set_key("specimens.S1.views", "../outside"), r"specimens\.S1\.views: got '\.\./outside'; "
-                      r"expected a path that stays inside the campaign directory"),
-    "absolute-path": (set_key("specimens.S1.views", "/tmp"), r"specimens\.S1\.views: got '/tmp'; expected a path "
-                      r"relative to the campaign directory"),
+    "escaping-path": (
+        set_key("specimens.S1.views", "../outside"),
+        r"specimens\.S1\.views: got '\.\./outside'; "
+        r"expected a path that stays inside the campaign directory",
+    ),
+    "absolute-path": (
+        set_key("specimens.S1.views", "/tmp"),
+        r"specimens\.S1\.views: got '/tmp'; expected a path "
+        r"relative to the campaign directory",
+    ),
     "symlink-escape": (
         then(link_outside, set_key("specimens.S1.views", "specimens/link")),
         r"specimens\.S1\.views: got 'specimens/link'; expected a path that stays inside",

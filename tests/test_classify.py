@@ -12,7 +12,9 @@ from hypothesis.extra import numpy as hnp
 from scipy.stats import multivariate_normal
 from sklearn.neighbors import KNeighborsClassifier
 
+from surffin.errors import SurffinError
 from surffin.grid import Roi
+from surffin.io.store import open_store, write_store
 from surffin.method.classify import (
     FEATURES,
     NOISE_CORRECTED,
@@ -25,9 +27,7 @@ from surffin.method.classify import (
     score,
     training_set,
 )
-from surffin.errors import SurffinError
 from surffin.method.stages import labels_stage
-from surffin.io.store import open_store, write_store
 
 Y0, X0 = 100, 60
 """Sensor position of the feature grids' top-left pixel."""
@@ -148,7 +148,9 @@ def test_standardisation_keeps_a_huge_feature_from_dominating():
 def test_class_model_is_the_mean_and_covariance_of_standardised_samples():
     training = training_set(specimens())
     mean, covariance = class_model(training)
-    z = (training["features"].values - training["features"].values.mean(axis=0)) / training["features"].values.std(axis=0)
+    z = (training["features"].values - training["features"].values.mean(axis=0)) / training["features"].values.std(
+        axis=0
+    )
     names = np.asarray(training["class"].values).astype(str)
     for index, name in enumerate(training.attrs["classes"]):
         np.testing.assert_allclose(mean[index], z[names == name].mean(axis=0), atol=1e-12)
@@ -205,7 +207,11 @@ def test_training_cap_keeps_evenly_spread_samples_of_every_item():
     # two S1 items of 192 pixels (one with a NaN) and one S2 item: cap 50 per class
     first, second = feature_image(CENTRES["S1"], seed=1), feature_image(CENTRES["S1"], seed=2)
     first["R0"][0, 3] = np.nan
-    items = {"a": (first, "S1", None), "b": (second, "S1", None), "c": (feature_image(CENTRES["S2"], seed=3), "S2", None)}
+    items = {
+        "a": (first, "S1", None),
+        "b": (second, "S1", None),
+        "c": (feature_image(CENTRES["S2"], seed=3), "S2", None),
+    }
     capped = training_set(items, max_per_class=50)
     full = training_set(items)
     classes = np.asarray(capped["class"].values).astype(str)

@@ -13,8 +13,6 @@ from scipy.optimize import least_squares
 from scipy.stats import norm
 
 import surffin
-from surffin.method.calibration import TERMS, calibration_set, instrument_function
-from surffin.grid import Roi
 from surffin.analysis.diagnostics import (
     coefficient_statistics,
     compare_calibrations,
@@ -25,13 +23,15 @@ from surffin.analysis.diagnostics import (
     wall_features,
 )
 from surffin.errors import CalibrationError
+from surffin.grid import Roi
+from surffin.io.store import open_store
+from surffin.method.calibration import TERMS, calibration_set, instrument_function
 from surffin.method.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW
 from surffin.pipeline.analyses import run_calibration_diagnostics
 from surffin.pipeline.run import run_calibration
 from surffin.report.diagnostics import CORRELATION_FIGURE, REPEATABILITY_FIGURE
 from surffin.simulate import PRESETS
 from surffin.simulate.plan import REPEAT_FOLDERS
-from surffin.io.store import open_store
 
 TINY = PRESETS["tiny"]
 HELD_OUT = "w005"
@@ -78,7 +78,11 @@ def test_spread_and_relative_difference_of_known_values():
     assert spread([np.nan])["std"] is None
     x = np.random.default_rng(0).uniform(0.5, 1.5, 500)
     assert relative_difference(x, x) == {
-        "n": 500, "median_abs_percent": 0.0, "mean_percent": 0.0, "std_percent": 0.0, "p95_abs_percent": 0.0
+        "n": 500,
+        "median_abs_percent": 0.0,
+        "mean_percent": 0.0,
+        "std_percent": 0.0,
+        "p95_abs_percent": 0.0,
     }
     eps = 0.02  # b = a (1 + eps): (a - b) / ((a + b) / 2) = -2 eps / (2 + eps) everywhere
     out = relative_difference(x, x * (1 + eps))
@@ -119,8 +123,15 @@ def test_correlation_and_fit_quality_of_a_known_coefficient_image():
 def test_calibration_compared_with_itself_and_with_a_known_perturbation():
     rng = np.random.default_rng(2)
     shape = (20, 30)
-    coef = np.stack([rng.uniform(50, 70, shape), rng.uniform(180, 220, shape), rng.uniform(-0.3, -0.2, shape),
-                     rng.uniform(0.04, 0.06, shape), np.ones(shape)])
+    coef = np.stack(
+        [
+            rng.uniform(50, 70, shape),
+            rng.uniform(180, 220, shape),
+            rng.uniform(-0.3, -0.2, shape),
+            rng.uniform(0.04, 0.06, shape),
+            np.ones(shape),
+        ]
+    )
     first = calibration_dataset(coef)
     grid = np.meshgrid(np.linspace(0.3, 1.0, 5), np.linspace(0.0, 0.8, 4), indexing="ij")
     same = compare_calibrations(first, first, grid)
@@ -155,9 +166,7 @@ def tiny(tmp_path_factory):
     processed = root / "processed"
     params = {"exclude": [HELD_OUT]}
     first = run_calibration(root / "raw", processed / "calibration.zarr", params=params)
-    repeat = run_calibration(
-        root / "raw", processed / "repeat.zarr", folders=REPEAT_FOLDERS
-    )
+    repeat = run_calibration(root / "raw", processed / "repeat.zarr", folders=REPEAT_FOLDERS)
     return root, first, repeat
 
 
@@ -184,8 +193,12 @@ def diagnose(tiny, output, **kwargs):
 def report(tiny):
     root, first, repeat = tiny
     return diagnose(
-        tiny, "diagnostics.json", repeat=repeat, repeat_folders=REPEAT_FOLDERS,
-        instrument_truth=root / "raw-truth" / "instrument.zarr", figures_dir=root / "figures",
+        tiny,
+        "diagnostics.json",
+        repeat=repeat,
+        repeat_folders=REPEAT_FOLDERS,
+        instrument_truth=root / "raw-truth" / "instrument.zarr",
+        figures_dir=root / "figures",
         log_path=root / "diagnostics.log",
     )
 
@@ -222,12 +235,22 @@ def test_calibration_set_names_the_bad_folder(tiny):
 
 def test_report_layout_and_figures(tiny, report):
     root = tiny[0]
-    assert set(report) == {"campaign", "region", "inputs", "calibrations", "wall_features", "truth", "repeatability",
-                           "paper"}
+    assert set(report) == {
+        "campaign",
+        "region",
+        "inputs",
+        "calibrations",
+        "wall_features",
+        "truth",
+        "repeatability",
+        "paper",
+    }
     assert report["region"]["y"] == list(TINY.crop[0])
     assert set(report["calibrations"]) == {"first", "repeat"}
-    assert report["calibrations"]["first"]["calibration_set"] == {"wall": "calibration/wall",
-                                                                   "reference": "calibration/reference"}
+    assert report["calibrations"]["first"]["calibration_set"] == {
+        "wall": "calibration/wall",
+        "reference": "calibration/reference",
+    }
     assert report["calibrations"]["repeat"]["calibration_set"] == REPEAT_FOLDERS
     assert report["calibrations"]["first"]["fit"]["mean_r2"] > 0.99
     for name in (CORRELATION_FIGURE, REPEATABILITY_FIGURE):

@@ -35,7 +35,9 @@ def campaign(tmp_path_factory):
         inputs["aoi"] = store["aoi"]
         run_stage(reflectance_stage, store["reflectance"], stores={**inputs, "calibration": calibration}, chunks=CHUNKS)
         inputs["reflectance"] = store["reflectance"]
-        run_stage(registration_stage, store["registered"], stores=inputs, params={"roi": roi(camp, item)}, chunks=CHUNKS)
+        run_stage(
+            registration_stage, store["registered"], stores=inputs, params={"roi": roi(camp, item)}, chunks=CHUNKS
+        )
     return camp, processed
 
 

@@ -11,16 +11,16 @@ from surffin.grid import Roi
 from surffin.method.features import (
     QUALITY,
     features,
+    first_available,
     gaussian_sigma,
     local_std,
-    first_available,
-    views_by_incidence,
     residual_correlation,
     select_roi,
     smooth,
     smooth_uncertainty,
     variability,
     variance_inflation,
+    views_by_incidence,
 )
 from surffin.method.scattering import fit_scattering, scattering_model
 
@@ -300,7 +300,16 @@ def fit():
 def test_features(fit):
     var = grid(np.full((16, 20), 0.01))
     ds = features(fit, var, size=5)
-    assert set(ds.data_vars) == {"R0", "n", "variability", "R0_uncertainty", "n_uncertainty", "R0_fit", "n_fit", *QUALITY}
+    assert set(ds.data_vars) == {
+        "R0",
+        "n",
+        "variability",
+        "R0_uncertainty",
+        "n_uncertainty",
+        "R0_fit",
+        "n_fit",
+        *QUALITY,
+    }
     np.testing.assert_array_equal(ds["R0"].values, smooth(fit["R0"], 5).values)
     np.testing.assert_array_equal(ds["n_fit"].values, fit["n"].values)
     # smoothing lowers the pixel-to-pixel scatter of the fit
@@ -322,10 +331,10 @@ def test_features_propagate_the_fit_sigma(fit):
     bound = features(fit, var)
     assert bound.attrs["uncertainty_propagation"].startswith("fully correlated")
     assert "uncertainty_inflation" not in bound.attrs
-    np.testing.assert_array_equal(
-        bound["n_uncertainty"].values, smooth_uncertainty(fit["n"], fit["n_sigma"]).values
+    np.testing.assert_array_equal(bound["n_uncertainty"].values, smooth_uncertainty(fit["n"], fit["n_sigma"]).values)
+    correlation = xr.DataArray(
+        np.zeros((13, 13)), dims=("lag_y", "lag_x"), coords={"lag_y": np.arange(-6, 7), "lag_x": np.arange(-6, 7)}
     )
-    correlation = xr.DataArray(np.zeros((13, 13)), dims=("lag_y", "lag_x"), coords={"lag_y": np.arange(-6, 7), "lag_x": np.arange(-6, 7)})
     correlation[6, 6] = 1.0
     ds = features(fit, var, error_correlation=correlation)
     assert ds.attrs["uncertainty_inflation"] == pytest.approx(1.0)
@@ -338,7 +347,9 @@ def test_features_propagate_the_fit_sigma(fit):
         # independent errors average down; the bound does not
         assert np.nanmedian(ds[f"{name}_uncertainty"]) < 0.3 * np.nanmedian(bound[f"{name}_uncertainty"])
     # a correlation without residuals (NaN) falls back to the bound
-    assert features(fit, var, error_correlation=correlation * np.nan).attrs["uncertainty_propagation"].startswith("fully")
+    assert (
+        features(fit, var, error_correlation=correlation * np.nan).attrs["uncertainty_propagation"].startswith("fully")
+    )
 
 
 def test_features_stay_lazy(fit):
@@ -379,7 +390,9 @@ def test_constant_uncertainty_has_the_closed_form():
     # an unknown uncertainty takes the mean variance of its window: nothing changes here
     unknown = np.full(shape, s)
     unknown[5:7, 8] = np.nan
-    np.testing.assert_allclose(smooth_uncertainty(grid(np.ones(shape)), grid(unknown), inflation=1.0).values, out, rtol=1e-13)
+    np.testing.assert_allclose(
+        smooth_uncertainty(grid(np.ones(shape)), grid(unknown), inflation=1.0).values, out, rtol=1e-13
+    )
     # a window without any known uncertainty has none
     hole = np.full(shape, np.nan)
     hole[0, 0] = s
@@ -424,7 +437,9 @@ def test_variance_inflation_of_correlated_errors_monte_carlo():
 def test_variance_inflation_limits():
     lags = np.arange(-6, 7)
     coords = {"lag_y": lags, "lag_x": lags}
-    delta = xr.DataArray(np.where(np.add.outer(lags**2, lags**2) == 0, 1.0, 0.0), dims=("lag_y", "lag_x"), coords=coords)
+    delta = xr.DataArray(
+        np.where(np.add.outer(lags**2, lags**2) == 0, 1.0, 0.0), dims=("lag_y", "lag_x"), coords=coords
+    )
     assert variance_inflation(delta, 7) == pytest.approx(1.0, rel=1e-14)
     kernel = gaussian_kernel(7, 1.4)
     assert variance_inflation(delta * 0 + 1, 7) == pytest.approx(1 / (kernel**2).sum(), rel=1e-12)
@@ -441,9 +456,7 @@ def test_variance_inflation_is_the_double_sum_over_the_kernel():
     correlation = xr.DataArray(rho, dims=("lag_y", "lag_x"), coords={"lag_y": lags, "lag_x": lags})
     kernel = gaussian_kernel(7, 1.4)
     pixels = [(i, j) for i in range(7) for j in range(7)]
-    double_sum = sum(
-        kernel[p] * kernel[q] * rho[p[0] - q[0] + 6, p[1] - q[1] + 6] for p in pixels for q in pixels
-    )
+    double_sum = sum(kernel[p] * kernel[q] * rho[p[0] - q[0] + 6, p[1] - q[1] + 6] for p in pixels for q in pixels)
     assert variance_inflation(correlation, 7) == pytest.approx(double_sum / (kernel**2).sum(), rel=1e-12)
 
 

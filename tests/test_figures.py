@@ -10,8 +10,13 @@ import xarray as xr
 from matplotlib.image import imread
 
 import surffin
-from surffin.method.calibration import SAMPLE_QUANTITIES, TERMS, calibrate, instrument_function, reflectance
 from surffin.grid import Roi
+from surffin.io.store import write_store
+from surffin.method.calibration import SAMPLE_QUANTITIES, TERMS, calibrate, instrument_function, reflectance
+from surffin.method.geometry import angle_of_incidence
+from surffin.method.roughness import roughness_relation
+from surffin.pipeline.analyses import run_figures
+from surffin.pipeline.run import run_roughness_map
 from surffin.report.figures import (
     FIGURE_KINDS,
     accuracy_table,
@@ -24,11 +29,6 @@ from surffin.report.figures import (
     plot_wall_reflectance,
     write_table,
 )
-from surffin.method.geometry import angle_of_incidence
-from surffin.pipeline.analyses import run_figures
-from surffin.pipeline.run import run_roughness_map
-from surffin.method.roughness import roughness_relation
-from surffin.io.store import write_store
 
 REPO = Path(__file__).resolve().parents[1]
 HEIGHT, WIDTH = 24, 32
@@ -260,7 +260,9 @@ def test_label_map_shows_the_labels(tmp_path):
     declined = labels.copy(deep=True)
     declined["label"].values[:3] = -1
     declined["label"].attrs["unclassified"] = {"missing_feature": 0, "ambiguous": 3 * labels.sizes["x"]}
-    assert not np.array_equal(first, png(plot_labels(declined, ingest, tmp_path / "d.png", scores=SUMMARY["scenes"]["T1"])))
+    assert not np.array_equal(
+        first, png(plot_labels(declined, ingest, tmp_path / "d.png", scores=SUMMARY["scenes"]["T1"]))
+    )
 
 
 def test_accuracy_table_reports_the_summary(tmp_path):
@@ -286,7 +288,9 @@ def stores(calibration, tmp_path):
     summary = tmp_path / "summary.json"
     summary.write_text(json.dumps(SUMMARY))
     relation = tmp_path / "relation.json"
-    relation.write_text(json.dumps(roughness_relation({"S1": 1.28, "S2": 1.24, "S3": 1.17}, {"S1": 0.007, "S2": 0.026, "S3": 0.053})))
+    relation.write_text(
+        json.dumps(roughness_relation({"S1": 1.28, "S2": 1.24, "S3": 1.17}, {"S1": 0.007, "S2": 0.026, "S3": 0.053}))
+    )
     features_store = write_store(features, tmp_path / "features.zarr")
     return {
         "calibration": write_store(calibration, tmp_path / "calibration.zarr"),
@@ -316,9 +320,17 @@ def test_run_figures_writes_every_requested_file(stores, tmp_path):
     assert set(outputs) == set(FIGURE_KINDS)
     written = run_figures(outputs, roi={"y": [6, 18], "x": [8, 24]}, log_path=tmp_path / "figures.log", **stores)
     expected = {
-        "calibration_fit.png", "calibration_r2.png", "calibration_parameters.html", "calibration_parameters.csv",
-        "wall_reflectance.png", "feature_space.png", "accuracy.html", "accuracy.csv", "features/S2.png",
-        "labels/T1.png", "roughness/T1.png",
+        "calibration_fit.png",
+        "calibration_r2.png",
+        "calibration_parameters.html",
+        "calibration_parameters.csv",
+        "wall_reflectance.png",
+        "feature_space.png",
+        "accuracy.html",
+        "accuracy.csv",
+        "features/S2.png",
+        "labels/T1.png",
+        "roughness/T1.png",
     }
     assert {str(path.relative_to(out)) for path in written} == expected
     assert {str(path.relative_to(out)) for path in out.rglob("*") if path.is_file()} == expected
@@ -371,8 +383,11 @@ def test_calibrate_keeps_raw_wall_observations_with_their_reflectance(tmp_path):
     # the wall image: the view with the smallest median AOI over the crop, reflectance as reflectance() gives it
     geometry = {
         stem: angle_of_incidence(
-            xr.DataArray(view.xyz[None], dims=("view", "y", "x", "axis"), coords={"view": [stem], **sensor_coords(
-                height=view.xyz.shape[0], width=view.xyz.shape[1])}),
+            xr.DataArray(
+                view.xyz[None],
+                dims=("view", "y", "x", "axis"),
+                coords={"view": [stem], **sensor_coords(height=view.xyz.shape[0], width=view.xyz.shape[1])},
+            ),
         ).isel(view=0)
         for stem, view in views.items()
     }
@@ -393,10 +408,18 @@ def test_snakemake_report_holds_every_figure(tiny_run, snakemake, planned_jobs, 
     figures = done / "processed" / "figures"
     camp = surffin.read_campaign(done / "raw")
     expected = {
-        "calibration_fit.png", "calibration_r2.png", "calibration_parameters.html", "calibration_parameters.csv",
-        "wall_reflectance.png", "feature_space.png", "accuracy.html", "accuracy.csv",
-        "calibration_correlation.png", "calibration_repeatability.png",
-        *(f"features/{name}.png" for name in camp.items), *(f"labels/{name}.png" for name in camp.scenes),
+        "calibration_fit.png",
+        "calibration_r2.png",
+        "calibration_parameters.html",
+        "calibration_parameters.csv",
+        "wall_reflectance.png",
+        "feature_space.png",
+        "accuracy.html",
+        "accuracy.csv",
+        "calibration_correlation.png",
+        "calibration_repeatability.png",
+        *(f"features/{name}.png" for name in camp.items),
+        *(f"labels/{name}.png" for name in camp.scenes),
         *(f"roughness/{name}.png" for name in camp.scenes),
     }
     assert {str(path.relative_to(figures)) for path in figures.rglob("*") if path.is_file()} == expected
@@ -408,8 +431,15 @@ def test_snakemake_report_holds_every_figure(tiny_run, snakemake, planned_jobs, 
     run = snakemake(done, "--report", str(tmp_path / "report.html"))
     assert run.returncode == 0, run.stderr[-3000:]
     report = (tmp_path / "report.html").read_text()
-    for name in ("calibration_fit.png", "wall_reflectance.png", "accuracy.html", "feature_space.png",
-                 "calibration_repeatability.png", "separation.png", "views.png"):
+    for name in (
+        "calibration_fit.png",
+        "wall_reflectance.png",
+        "accuracy.html",
+        "feature_space.png",
+        "calibration_repeatability.png",
+        "separation.png",
+        "views.png",
+    ):
         assert name in report
     assert "Undefined substitution" not in run.stderr + run.stdout  # captions are valid reStructuredText
     # a smoothing change redraws the feature figures and what follows, not the calibration's

@@ -395,7 +395,9 @@ def naive_float32_aoi(xyz, window):
     normal = np.linalg.solve(normal_equations, np.stack([suq, svq, sq], -1)[..., None])[..., 0]
     half = window // 2
     inner = xyz[half : height - half, half : width - half]
-    return np.arccos(np.abs(np.sum(normal * inner, axis=-1)) / np.linalg.norm(normal, axis=-1) / np.linalg.norm(inner, axis=-1))
+    return np.arccos(
+        np.abs(np.sum(normal * inner, axis=-1)) / np.linalg.norm(normal, axis=-1) / np.linalg.norm(inner, axis=-1)
+    )
 
 
 def test_float32_input_equals_float64_input():
@@ -464,7 +466,11 @@ def test_dataset_layout_and_attributes():
     np.testing.assert_allclose(ds.aoi.values[1], expected, atol=2e-7, rtol=0)
     np.testing.assert_allclose(ds.distance.values[1], distance, rtol=1e-7)
     defaults = angle_of_incidence(xyz).attrs
-    assert (defaults["window"], defaults["jump"], defaults["max_window"]) == (DEFAULT_WINDOW, DEFAULT_JUMP, DEFAULT_MAX_WINDOW)
+    assert (defaults["window"], defaults["jump"], defaults["max_window"]) == (
+        DEFAULT_WINDOW,
+        DEFAULT_JUMP,
+        DEFAULT_MAX_WINDOW,
+    )
 
 
 def test_axis_coordinate_order_is_honoured():

@@ -255,10 +255,14 @@ def report(root: Path = ROOT) -> str:
         rows.append(f"{layer:<9} {len(members):>7}  {edges:>15}  {below}")
     statements = sum(len(source.imports) for source in modules.values())
     folders = ", ".join(folder for folder in CLIENTS if (root / folder).is_dir())
-    rows.append(f"layers and cycles: {len(modules)} modules, {statements} imported names, "
-                f"{sum(map(len, graph.values()))} distinct imports of surffin modules")
-    rows.append(f"private names: those modules and {len(clients)} files of {folders}, "
-                f"{statements + sum(len(source.imports) for source in clients)} imported names")
+    rows.append(
+        f"layers and cycles: {len(modules)} modules, {statements} imported names, "
+        f"{sum(map(len, graph.values()))} distinct imports of surffin modules"
+    )
+    rows.append(
+        f"private names: those modules and {len(clients)} files of {folders}, "
+        f"{statements + sum(len(source.imports) for source in clients)} imported names"
+    )
     return "\n".join(rows)
 
 
@@ -379,14 +383,16 @@ def test_the_private_check_sees_imports_and_attributes(tmp_path):
     client.parent.mkdir()
     client.write_text("import numpy as np\nfrom surffin.method.features import _helper\nnp._private = 1\n")
     found = private_violations([*modules.values(), *read_clients(tmp_path)], modules)
-    assert found == sorted([
-        "tests/test_x.py:2: imports _helper from surffin.method.features",
-        "surffin.method.classify:1: imports _helper from surffin.method.features",
-        "surffin.method.classify:2: imports _helper from surffin.method.features",
-        "surffin.method.stages:4: uses surffin.method.features._helper",
-        "surffin.method.stages:5: uses surffin.method.features._helper",
-        "surffin.method.stages:6: uses surffin.method.features._helper",
-    ])
+    assert found == sorted(
+        [
+            "tests/test_x.py:2: imports _helper from surffin.method.features",
+            "surffin.method.classify:1: imports _helper from surffin.method.features",
+            "surffin.method.classify:2: imports _helper from surffin.method.features",
+            "surffin.method.stages:4: uses surffin.method.features._helper",
+            "surffin.method.stages:5: uses surffin.method.features._helper",
+            "surffin.method.stages:6: uses surffin.method.features._helper",
+        ]
+    )
 
 
 def test_the_cycle_check_counts_function_level_imports(tmp_path):

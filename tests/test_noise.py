@@ -97,7 +97,9 @@ def test_local_std_without_the_noise_measures_the_texture():
 
 def test_variability_takes_out_the_relative_noise():
     rng = np.random.default_rng(5)
-    aoi = xr.DataArray(np.full(SHAPE, 0.5), dims=("y", "x"), coords={"y": np.arange(SHAPE[0]), "x": np.arange(SHAPE[1])})
+    aoi = xr.DataArray(
+        np.full(SHAPE, 0.5), dims=("y", "x"), coords={"y": np.arange(SHAPE[0]), "x": np.arange(SHAPE[1])}
+    )
     relative = aoi * 0 + 0.03
     surface = 0.8 * (1.0 + 0.02 * rng.standard_normal(SHAPE))
     observed = aoi.copy(data=surface * (1.0 + 0.03 * rng.standard_normal(SHAPE)) * np.cos(0.5))

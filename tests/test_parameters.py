@@ -6,9 +6,9 @@ import math
 import pytest
 import yaml
 
-from surffin.pipeline import parameters
 from surffin.method.calibration import calibrate
 from surffin.method.stages import aoi_stage, features_stage, labels_stage
+from surffin.pipeline import parameters
 
 SCHEMA = parameters.DEFAULT_CONFIG.parent.parent / "workflow" / "schemas" / "config.schema.yaml"
 

@@ -39,8 +39,9 @@ def chain_jobs(camp, calibration, item, folder):
         params = {key: PARAMS[key] for key in step.keywords if key in PARAMS}
         params |= {"roi": roi.as_mapping()} if "roi" in step.keywords and roi is not None else {}
         inputs = {name: stores[name] for name in step.inputs}
-        stores[step.output] = run_stage(step.function, folder / f"{step.output}.zarr", stores=inputs, params=params,
-                                        chunks=CHUNKS)
+        stores[step.output] = run_stage(
+            step.function, folder / f"{step.output}.zarr", stores=inputs, params=params, chunks=CHUNKS
+        )
     return stores
 
 

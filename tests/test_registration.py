@@ -9,16 +9,16 @@ import pytest
 import xarray as xr
 from scipy import ndimage
 
+from surffin.errors import RegistrationError
 from surffin.grid import Roi
 from surffin.io.campaign import read_campaign
-from surffin.errors import RegistrationError
 from surffin.io.ingest import build_cube, ingest_item
+from surffin.io.viewfile import View
 from surffin.method.registration import register, registration_error, registration_maps, warp
 from surffin.simulate import simulate_campaign
 from surffin.simulate.camera import PinholeCamera, look_at_pose, to_camera
 from surffin.simulate.scene import Material, Scene, Texture, box_faces, keyed_rng, plane_face, render
 from surffin.simulate.truth import reference_coordinates
-from surffin.io.viewfile import View
 
 CAMERA = PinholeCamera(width=160, height=120, fx=565.0 / 4, fy=579.0 / 4)
 CROP = Roi((8, 112), (12, 148))

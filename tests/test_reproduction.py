@@ -29,10 +29,19 @@ SUMMARY = {
     "scenes": {"T1": {"accuracy": {"label": {"accuracy": 0.991}, "label_filtered": {"accuracy": 0.999}}}},
 }
 SLOPES = [
-    {"noise": "reflectance", "level": "max", "sigma": "0.04", "parameter": "n", "slope": "-0.29",
-     "predicted_slope": "-0.24", "slope_from_3": "-0.37"},
+    {
+        "noise": "reflectance",
+        "level": "max",
+        "sigma": "0.04",
+        "parameter": "n",
+        "slope": "-0.29",
+        "predicted_slope": "-0.24",
+        "slope_from_3": "-0.37",
+    },
 ]
-SEPARATION = [{"noise": "reflectance", "level": "max", "sigma": 0.04, "parameter": "n", "required_separation_deg": 18.0}]
+SEPARATION = [
+    {"noise": "reflectance", "level": "max", "sigma": 0.04, "parameter": "n", "required_separation_deg": 18.0}
+]
 RELATION = {"r2": 0.998, "intercept": 1.3, "slope": -2.4, "roughness_rmse_mm": 0.004}
 
 
@@ -51,7 +60,9 @@ DIAGNOSTICS = {
             "calibration_set": {"wall": "calibration/wall"},
         }
     },
-    "wall_features": [{"calibration": "first", "views": 105, "views_in_fit": 105, "R0": {"std": 0.002}, "n": {"std": 0.015}}],
+    "wall_features": [
+        {"calibration": "first", "views": 105, "views_in_fit": 105, "R0": {"std": 0.002}, "n": {"std": 0.015}}
+    ],
     "repeatability": {
         "available": True,
         "coefficients": {term: percent(1.0) for term in "ABCDE"},
@@ -74,8 +85,13 @@ def every_row(tmp_path):
         path.write_text(f"s\th:m:s\tmax_rss\n{seconds}\t0:00:01\t100\n")
         benchmarks.append(path)
     return comparison(
-        summary=SUMMARY, specimens=["S1", "S2", "S3", "S4"], diagnostics=DIAGNOSTICS, slopes=SLOPES,
-        separation=SEPARATION, relation=RELATION, runtime={"T1": {"views": 5, "benchmarks": benchmarks}},
+        summary=SUMMARY,
+        specimens=["S1", "S2", "S3", "S4"],
+        diagnostics=DIAGNOSTICS,
+        slopes=SLOPES,
+        separation=SEPARATION,
+        relation=RELATION,
+        runtime={"T1": {"views": 5, "benchmarks": benchmarks}},
     )
 
 
@@ -95,7 +111,12 @@ def test_rows_carry_the_numbers_of_their_sources(tmp_path):
 def test_every_row_says_where_its_number_comes_from(tmp_path):
     rows = every_row(tmp_path)
     assert {row["section"] for row in rows} == {
-        "calibration", "sensitivity", "features", "roughness", "classification", "runtime"
+        "calibration",
+        "sensitivity",
+        "features",
+        "roughness",
+        "classification",
+        "runtime",
     }
     assert all(row["origin"] in ORIGINS for row in rows)
     assert {row["origin"] for row in rows} == set(ORIGINS)
@@ -140,10 +161,17 @@ def test_the_preset_inputs_the_notes_name_are_the_papers():
     """What the "by construction" notes say the ``paper`` preset took from the paper is what it holds."""
     preset = PRESETS["paper"]
     assert [(s.name, s.roughness_mm, s.material.R0) for s in preset.specimens] == [
-        ("S1", 0.0068, 0.80), ("S2", 0.0255, 0.86), ("S3", 0.0532, 0.92), ("S4", 0.1459, 0.81)
+        ("S1", 0.0068, 0.80),
+        ("S2", 0.0255, 0.86),
+        ("S3", 0.0532, 0.92),
+        ("S4", 0.1459, 0.81),
     ]
-    assert [s.material.n for s in preset.specimens] == pytest.approx([1.30 - 2.4 * s.roughness_mm for s in preset.specimens])
-    assert preset.coef_variability == pytest.approx([CALIBRATION_PAPER["variability_percent"][t] / 100 for t in "ABCDE"])
+    assert [s.material.n for s in preset.specimens] == pytest.approx(
+        [1.30 - 2.4 * s.roughness_mm for s in preset.specimens]
+    )
+    assert preset.coef_variability == pytest.approx(
+        [CALIBRATION_PAPER["variability_percent"][t] / 100 for t in "ABCDE"]
+    )
     C, D = preset.coef_mean[2:4]
     assert C < 0 < D
 
@@ -167,5 +195,7 @@ def test_markdown_table_and_file(tmp_path):
         assert f"- **{origin}**: {meaning}." in text
     assert "Regenerate with: `snakemake --cores 2`" in text
     (tmp_path / "summary.json").write_text(json.dumps(SUMMARY))
-    out = run_paper_comparison(tmp_path / "out" / "cmp.md", summary=tmp_path / "summary.json", specimens=["S1", "S2", "S3", "S4"])
+    out = run_paper_comparison(
+        tmp_path / "out" / "cmp.md", summary=tmp_path / "summary.json", specimens=["S1", "S2", "S3", "S4"]
+    )
     assert "| classification | T1: accuracy of label " in out.read_text()

@@ -8,9 +8,9 @@ import pytest
 import xarray as xr
 
 from surffin.errors import SurffinError
-from surffin.pipeline.run import run_roughness_map, run_roughness_relation
-from surffin.method.roughness import roughness_map, roughness_relation
 from surffin.io.store import open_store, write_store
+from surffin.method.roughness import roughness_map, roughness_relation
+from surffin.pipeline.run import run_roughness_map, run_roughness_relation
 
 ROUGHNESS = {"S1": 0.0068, "S2": 0.05, "S3": 0.11, "S4": 0.2}
 
@@ -89,7 +89,11 @@ def test_pipeline_writes_relation_and_map(tmp_path):
         ds = xr.Dataset({"n": (("y", "x"), n)}, coords={"y": np.arange(10, 30), "x": np.arange(40, 70)})
         ds.attrs["surffin_stage"] = "features"
         write_store(ds, tmp_path / f"{name}.zarr")
-        specimens[name] = {"store": str(tmp_path / f"{name}.zarr"), "roi": {"y": [12, 30], "x": [40, 70]}, "roughness_mm": r}
+        specimens[name] = {
+            "store": str(tmp_path / f"{name}.zarr"),
+            "roi": {"y": [12, 30], "x": [40, 70]},
+            "roughness_mm": r,
+        }
     out = run_roughness_relation(tmp_path / "rough" / "relation.json", specimens=specimens)
     rel = json.loads(out.read_text())
     assert rel["slope"] == pytest.approx(-2.4, rel=0.01) and rel["r2"] > 0.999

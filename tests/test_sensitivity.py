@@ -15,7 +15,6 @@ from matplotlib.image import imread
 from scipy.optimize import least_squares
 from scipy.stats import chi2
 
-from surffin.cli import main
 from surffin.analysis.sensitivity import (
     NOISE_LEVELS,
     OUTPUTS,
@@ -29,6 +28,7 @@ from surffin.analysis.sensitivity import (
     separation_summary,
     views_slopes,
 )
+from surffin.cli import main
 from surffin.io.store import open_store
 from surffin.pipeline.analyses import run_sensitivity
 
@@ -178,7 +178,9 @@ def test_fit_sigma_matches_prediction(table, count):
     dof = count - 2
     expected = np.sqrt(chi2.median(dof) / dof)
     for _, row in rows(table, case="views", noise="reflectance", n_views=count).iterrows():
-        assert row["fit_sigma_median"] / row["predicted_std"] == pytest.approx(expected, rel=BAND * 1.25 / np.sqrt(2 * dof * DRAWS))
+        assert row["fit_sigma_median"] / row["predicted_std"] == pytest.approx(
+            expected, rel=BAND * 1.25 / np.sqrt(2 * dof * DRAWS)
+        )
 
 
 def test_fit_sigma_undefined_with_two_views(table):
@@ -234,9 +236,13 @@ def test_each_configuration_reproducible_alone():
     """A row of the table is reproduced from its own generator, whatever else was run."""
     table = sensitivity_table(draws=50, seed=3).to_dataframe()
     row = rows(table, case="separation", noise="aoi", level="max", separation_deg=20.0, parameter="n").iloc[0]
-    fits = draw_fits(np.radians([45.0, 25.0]), "aoi", np.radians(1.7), 50, configuration_rng(3, "separation", "aoi", "max", 20))
+    fits = draw_fits(
+        np.radians([45.0, 25.0]), "aoi", np.radians(1.7), 50, configuration_rng(3, "separation", "aoi", "max", 20)
+    )
     assert row["std"] == np.std(fits["n"].values - 1.0, ddof=1)
-    shorter = draw_fits(np.radians([45.0, 25.0]), "aoi", np.radians(1.7), 20, configuration_rng(3, "separation", "aoi", "max", 20))
+    shorter = draw_fits(
+        np.radians([45.0, 25.0]), "aoi", np.radians(1.7), 20, configuration_rng(3, "separation", "aoi", "max", 20)
+    )
     np.testing.assert_array_equal(shorter["n"].values, fits["n"].values[:20])
 
 

@@ -143,9 +143,10 @@ def test_aoi_matches_an_independent_plane_fit(clean):
         seen = np.isfinite(u) & view.valid
         on_top = np.zeros_like(seen)
         on_top[seen] = truth.surface.values[np.rint(v[seen]).astype(int), np.rint(u[seen]).astype(int)] == top
-        on_top &= truth.edge_distance.values[
-            np.rint(np.nan_to_num(v)).astype(int), np.rint(np.nan_to_num(u)).astype(int)
-        ] > 0.01
+        on_top &= (
+            truth.edge_distance.values[np.rint(np.nan_to_num(v)).astype(int), np.rint(np.nan_to_num(u)).astype(int)]
+            > 0.01
+        )
         points = view.xyz[on_top]
         assert len(points) > 100
         centred = points - points.mean(axis=0)
@@ -177,7 +178,9 @@ def test_reference_coordinates_follow_the_poses(clean):
 
 def test_texture_turns_with_the_specimen():
     camera = PinholeCamera(width=64, height=64, fx=70.0, fy=70.0)
-    material = Material("grainy", 0.8, 1.2, R0_texture=(Texture(0.2, 0.003, 0.25),), n_texture=(Texture(0.1, 0.003, 0.25),))
+    material = Material(
+        "grainy", 0.8, 1.2, R0_texture=(Texture(0.2, 0.003, 0.25),), n_texture=(Texture(0.1, 0.003, 0.25),)
+    )
     pose = look_at_pose((0.2, 0.1, -0.01), 0.3, 0.0, 0.0)
     maps = {}
     for quarter in (0, 1):
@@ -211,7 +214,9 @@ def test_noise_free_intensity_is_scale_k_f_R(clean, item):
     expected = instrument.attrs["scale_k"] * f * R
     np.testing.assert_allclose(view.intensity[valid], expected[valid], rtol=1e-6)
     # and the raw, un-normalised instrument gives the same intensity
-    raw = instrument.attrs["gain"] * instrument_function(instrument.coef_raw.values, truth.distance.values, truth.aoi.values)
+    raw = instrument.attrs["gain"] * instrument_function(
+        instrument.coef_raw.values, truth.distance.values, truth.aoi.values
+    )
     np.testing.assert_allclose(view.intensity[valid], (raw * R)[valid], rtol=1e-6)
     np.testing.assert_allclose(np.linalg.norm(view.xyz[valid], axis=-1), truth.distance.values[valid], rtol=1e-6)
 
@@ -238,9 +243,11 @@ def test_noise_levels(noisy):
     # intensity: relative noise between the configured bounds
     instrument = xr.open_zarr(noisy[1] / "instrument.zarr").compute()
     R = truth.R0.values * np.cos((2 - 1 / truth.n.values) * truth.aoi.values) ** truth.n.values
-    signal = instrument.attrs["scale_k"] * instrument_function(
-        instrument.coef.values, truth.distance.values, truth.aoi.values
-    ) * R
+    signal = (
+        instrument.attrs["scale_k"]
+        * instrument_function(instrument.coef.values, truth.distance.values, truth.aoi.values)
+        * R
+    )
     relative = view.intensity[view.valid] / signal[view.valid] - 1
     assert TINY.intensity_noise * 0.9 < relative.std() < TINY.intensity_noise_max
     # dropouts: a small fraction of otherwise good pixels is invalid
@@ -364,7 +371,9 @@ def test_truth_inside_the_campaign_is_refused(tmp_path):
 def test_cli(tmp_path, capsys):
     parser = argparse.ArgumentParser()
     cli_parser(parser)
-    args = parser.parse_args([str(tmp_path / "c"), "--preset", "tiny", "--seed", "2", "--format", "ply", "--units", "mm"])
+    args = parser.parse_args(
+        [str(tmp_path / "c"), "--preset", "tiny", "--seed", "2", "--format", "ply", "--units", "mm"]
+    )
     assert cli_run(args) == 0
     out, err = capsys.readouterr()
     assert out.strip() == str(tmp_path / "c" / "campaign.yaml")
@@ -396,7 +405,9 @@ VARIANT = dataclasses.replace(
     reference_view=1,
     scenes=(
         SceneLayout(TINY.specimens, TINY.scene_rotations, TINY.scene_distance, TINY.scene_tilts),
-        SceneLayout(tuple(another_piece(s, "b") for s in TINY.specimens[:3]), (0.0, 90.0, 180.0), 0.6, (10.0, 30.0, 40.0)),
+        SceneLayout(
+            tuple(another_piece(s, "b") for s in TINY.specimens[:3]), (0.0, 90.0, 180.0), 0.6, (10.0, 30.0, 40.0)
+        ),
     ),
 )
 
@@ -422,7 +433,9 @@ def test_a_later_reference_view_is_written_and_read(variant):
         assert truth.attrs["reference_view"] == "v01"
         # the truth lies on the reference view's grid: its points, its AOI, its own coordinates
         view = camp.read_view(item.reference_view)
-        np.testing.assert_allclose(np.linalg.norm(view.xyz[view.valid], axis=-1), truth.distance.values[view.valid], rtol=1e-6)
+        np.testing.assert_allclose(
+            np.linalg.norm(view.xyz[view.valid], axis=-1), truth.distance.values[view.valid], rtol=1e-6
+        )
         np.testing.assert_array_equal(truth.aoi.values, truth.aoi_view[1].values)
         np.testing.assert_allclose(truth.u_ref[1].values, cols, atol=1e-9)
         np.testing.assert_allclose(truth.v_ref[1].values, rows, atol=1e-9)
@@ -476,9 +489,15 @@ def test_specimens_may_have_their_own_thickness():
     "change, message",
     [
         ({"reference_view": 3}, "reference_view 3 must index"),
-        ({"reference_view": 2, "scenes": (SceneLayout(TINY.specimens, TINY.scene_rotations, 0.5, (0.0, 20.0)),)}, "0 to 1"),
         (
-            {"specimens": TINY.specimens[:2], "scenes": (SceneLayout(TINY.specimens[2:3], (0.0,), 0.5, TINY.scene_tilts),)},
+            {"reference_view": 2, "scenes": (SceneLayout(TINY.specimens, TINY.scene_rotations, 0.5, (0.0, 20.0)),)},
+            "0 to 1",
+        ),
+        (
+            {
+                "specimens": TINY.specimens[:2],
+                "scenes": (SceneLayout(TINY.specimens[2:3], (0.0,), 0.5, TINY.scene_tilts),),
+            },
             "piece S3 is of class 'S3', which no specimen has",
         ),
     ],
@@ -600,7 +619,11 @@ def test_validation_classes_spread_and_overlap_like_the_paper(name):
             low, middle, high = np.percentile(smooth[inside], [5, 50, 95])
             ranges[acquisition.name, key] = (low, high)
             spread = (high - low) / middle
-            assert (0.07 <= spread <= 0.10) if key == "R0" else (0.028 <= spread <= 0.042), (acquisition.name, key, spread)
+            assert (0.07 <= spread <= 0.10) if key == "R0" else (0.028 <= spread <= 0.042), (
+                acquisition.name,
+                key,
+                spread,
+            )
     names = [specimen.name for specimen in preset.specimens]
     for first in names:  # every two classes' R0 ranges overlap, their n ranges do not
         for second in names[names.index(first) + 1 :]:

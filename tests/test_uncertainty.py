@@ -5,9 +5,9 @@ import pytest
 import xarray as xr
 from scipy import stats
 
+from surffin.analysis.uncertainty import NORMAL_COVERAGE, coverage
 from surffin.method.features import features, residual_correlation
 from surffin.method.scattering import fit_scattering, scattering_model
-from surffin.analysis.uncertainty import NORMAL_COVERAGE, coverage
 
 Y0, X0 = 30, 50
 """Sensor position of the features' top-left pixel; the truth covers a larger sensor area."""
@@ -84,7 +84,12 @@ def test_mask_selects_sensor_pixels(item):
     assert result["n"]["n_pixels"] == 10 * 20
     empty = coverage(feats, truth, mask=mask & False)
     assert empty["R0"] == {
-        "n_pixels": 0, "within_1": None, "within_2": None, "expected_1": None, "expected_2": None, "z_scale": None
+        "n_pixels": 0,
+        "within_1": None,
+        "within_2": None,
+        "expected_1": None,
+        "expected_2": None,
+        "z_scale": None,
     }
 
 

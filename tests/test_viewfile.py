@@ -67,9 +67,7 @@ def test_round_trip(tmp_path, synthetic_view, sensor, name, options):
     np.testing.assert_array_equal(view.valid, valid)
     assert view.xyz.dtype == np.float64 and view.intensity.dtype == np.float32
     np.testing.assert_allclose(view.xyz[valid], xyz[valid], rtol=0, atol=RAW_QUANTUM_M if raw else 1e-6)
-    np.testing.assert_allclose(
-        view.intensity[valid], intensity[valid], rtol=0 if raw else 1e-6, atol=0.5 if raw else 0
-    )
+    np.testing.assert_allclose(view.intensity[valid], intensity[valid], rtol=0 if raw else 1e-6, atol=0.5 if raw else 0)
     assert np.isnan(view.xyz[~valid]).all() and (view.intensity[~valid] == 0).all()
     np.testing.assert_allclose(view.pose, pose, rtol=0, atol=1e-12)
     in_sidecar = path.suffix != ".npz" or options.get("pose_sidecar", False)
@@ -128,9 +126,7 @@ def test_ply_big_endian_with_extra_properties_and_elements(tmp_path, synthetic_v
             "intensity": np.rint(intensity).astype(np.uint16).ravel(),
         }
     )
-    faces = plyfile.PlyElement.describe(
-        np.array([([0, 1, 2],)], dtype=[("vertex_indices", "i4", (3,))]), "face"
-    )
+    faces = plyfile.PlyElement.describe(np.array([([0, 1, 2],)], dtype=[("vertex_indices", "i4", (3,))]), "face")
     path = tmp_path / "v.ply"
     plyfile.PlyData([vertex, faces], byte_order=">", comments=["made by hand"]).write(path)
 

@@ -21,8 +21,15 @@ REPO = Path(__file__).resolve().parents[1]
 ITEM_CHAIN = {"ingest", "aoi", "reflectance", "registration", "features", "item_figures"}
 ROUGHNESS = {"roughness_relation": 1, "roughness_map": 1, "roughness_figures": 1}
 DOWNSTREAM = {
-    "training": 1, "labels": 1, "summary": 1, "classification_figures": 1, "scene_figures": 1, "all": 1,
-    "calibration_diagnostics": 1, "paper_comparison": 1, **ROUGHNESS,
+    "training": 1,
+    "labels": 1,
+    "summary": 1,
+    "classification_figures": 1,
+    "scene_figures": 1,
+    "all": 1,
+    "calibration_diagnostics": 1,
+    "paper_comparison": 1,
+    **ROUGHNESS,
 }
 
 
@@ -93,7 +100,9 @@ def test_every_store_follows_the_contract(done):
     summary = json.loads((processed / "summary.json").read_text())
     assert set(summary["items"]) == set(camp.items)
     assert summary["items"]["S1"]["region"] == "roi" and summary["items"]["T1"]["region"] == "image"
-    assert summary["items"]["S1"]["n"]["n_pixels"] <= camp.specimens["S1"].roi.shape[0] * camp.specimens["S1"].roi.shape[1]
+    assert (
+        summary["items"]["S1"]["n"]["n_pixels"] <= camp.specimens["S1"].roi.shape[0] * camp.specimens["S1"].roi.shape[1]
+    )
     accuracy = summary["scenes"]["T1"]["accuracy"]
     # measured 0.809 / 0.854 (tiny preset, seed 0: specimens 16 px wide in the scene, a sixth of it
     # unclassified as unlike the specimens); tests/test_accuracy.py holds the end-to-end bounds
@@ -120,16 +129,31 @@ def test_nothing_left_after_a_complete_run(done, planned_jobs):
 def test_smoothing_change_reruns_features_and_below_only(done, planned_jobs):
     jobs = planned_jobs(done, overrides={"features": {"smoothing": 5}})
     figures = {"item_figures": 5, "classification_figures": 1, "scene_figures": 1}
-    assert jobs == {"features": 5, "training": 1, "labels": 1, "summary": 1, "all": 1, **figures, **ROUGHNESS,
-                    "calibration_diagnostics": 1, "paper_comparison": 1}
+    assert jobs == {
+        "features": 5,
+        "training": 1,
+        "labels": 1,
+        "summary": 1,
+        "all": 1,
+        **figures,
+        **ROUGHNESS,
+        "calibration_diagnostics": 1,
+        "paper_comparison": 1,
+    }
 
 
 @pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_aoi_window_change_reruns_from_aoi_down(done, planned_jobs):
     jobs = planned_jobs(done, overrides={"aoi": {"window": 11, "jump": 0.16}})
     downstream = {"aoi", "reflectance", "registration", "features", "training", "labels", "summary", "all"}
-    assert set(jobs) == downstream | {"item_figures", "classification_figures", "scene_figures", *ROUGHNESS,
-                                      "calibration_diagnostics", "paper_comparison"}
+    assert set(jobs) == downstream | {
+        "item_figures",
+        "classification_figures",
+        "scene_figures",
+        *ROUGHNESS,
+        "calibration_diagnostics",
+        "paper_comparison",
+    }
     assert jobs["aoi"] == 5
 
 
@@ -143,7 +167,14 @@ BUMP_LABELS = (
 @pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_code_version_bump_reruns_that_stage(done, planned_jobs):
     jobs = planned_jobs(done, prelude=BUMP_LABELS)
-    assert jobs == {"labels": 1, "summary": 1, "classification_figures": 1, "scene_figures": 1, "paper_comparison": 1, "all": 1}
+    assert jobs == {
+        "labels": 1,
+        "summary": 1,
+        "classification_figures": 1,
+        "scene_figures": 1,
+        "paper_comparison": 1,
+        "all": 1,
+    }
 
 
 @contextlib.contextmanager

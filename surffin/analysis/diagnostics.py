@@ -360,8 +360,11 @@ def _calibration_aoi(calibration: xr.Dataset, path) -> dict:
             f"{path}: the calibration store does not record its AOI parameters {missing} (surffin_parameters); "
             f"refit it with this surffin"
         )
-    return {"window": int(parameters["window"]), "jump": float(parameters["jump"]),
-            "max_window": int(parameters["max_window"])}
+    return {
+        "window": int(parameters["window"]),
+        "jump": float(parameters["jump"]),
+        "max_window": int(parameters["max_window"]),
+    }
 
 
 #: Sensor rows fitted at a time by :func:`wall_features`, which bounds its memory.
@@ -437,8 +440,12 @@ def wall_features(
     fits = [
         xr.concat(
             [
-                fit_scattering(observed["reflectance"].sel(calibration=name).isel(y=rows), observed["aoi"].isel(y=rows),
-                               min_views=min_views, min_spread=min_spread)[["R0", "n"]]
+                fit_scattering(
+                    observed["reflectance"].sel(calibration=name).isel(y=rows),
+                    observed["aoi"].isel(y=rows),
+                    min_views=min_views,
+                    min_spread=min_spread,
+                )[["R0", "n"]]
                 for rows in bands
             ],
             dim="y",
@@ -485,8 +492,8 @@ def process_specimens(
         the reference view, the features ``R0``, ``n`` (smoothed) and the
         unsmoothed fits ``R0_fit``, ``n_fit`` (y, x).
     """
-    from surffin.method.features import select_roi
     from surffin.io.ingest import ingest_item
+    from surffin.method.features import select_roi
     from surffin.method.stages import process_item
 
     params = dict(params or {})
@@ -571,11 +578,24 @@ def _wall_report(camp: Campaign, calibrations: Mapping[str, xr.Dataset], item_pa
             in_fit = sum(inputs.get(relative) == description for relative, description in described.items())
             fit = fits.sel(calibration=name)
             spreads.append(
-                {"calibration": name, "wall": folder, "views": len(views), "views_in_fit": in_fit,
-                 "R0": spread(fit["R0"].values), "n": spread(fit["n"].values)}
+                {
+                    "calibration": name,
+                    "wall": folder,
+                    "views": len(views),
+                    "views_in_fit": in_fit,
+                    "R0": spread(fit["R0"].values),
+                    "n": spread(fit["n"].values),
+                }
             )
-            log.info("diagnostics: wall %s with %s (%d of %d views in its fit): std of R0 %s, of n %s", folder, name,
-                     in_fit, len(views), _format(spreads[-1]["R0"]["std"]), _format(spreads[-1]["n"]["std"]))
+            log.info(
+                "diagnostics: wall %s with %s (%d of %d views in its fit): std of R0 %s, of n %s",
+                folder,
+                name,
+                in_fit,
+                len(views),
+                _format(spreads[-1]["R0"]["std"]),
+                _format(spreads[-1]["n"]["std"]),
+            )
         if len(calibrations) == 2:
             pairs = {"reflectance": observed["reflectance"], "R0": fits["R0"], "n": fits["n"]}
             differences = {
@@ -666,17 +686,19 @@ def calibration_report(
     for name, path in stores.items():
         ds = open_store(path, stage="calibration")
         if "wall_obs" not in ds:
-            raise StoreError(f"{path}: the calibration store keeps no wall observations (wall_obs); refit it "
-                             f"with this surffin")
+            raise StoreError(
+                f"{path}: the calibration store keeps no wall observations (wall_obs); refit it with this surffin"
+            )
         calibrations[name] = ds[["coef", "r2", "status", "wall_obs"]].load()
     aoi = _calibration_aoi(calibrations["first"], calibration)
     region = camp.crop
     report = {
         "campaign": str(camp.root),
         "region": {"name": "crop", "y": list(region.y), "x": list(region.x)},
-        "inputs": {name: None if path is None else str(path)
-                   for name, path in (("calibration", calibration), ("repeat", repeat),
-                                      ("instrument_truth", instrument_truth))},
+        "inputs": {
+            name: None if path is None else str(path)
+            for name, path in (("calibration", calibration), ("repeat", repeat), ("instrument_truth", instrument_truth))
+        },
         "calibrations": {},
     }
     for name, cal in calibrations.items():
@@ -687,9 +709,13 @@ def calibration_report(
             "scale_k": float(cal.attrs["scale_k"]),
             **stats,
         }
-        log.info("diagnostics: %s: mean R2 %.4f over the crop; variability %% plain %s, robust %s", name,
-                 stats["fit"]["mean_r2"], _plain(stats["variability_percent"]["plain"]),
-                 _plain(stats["variability_percent"]["robust"]))
+        log.info(
+            "diagnostics: %s: mean R2 %.4f over the crop; variability %% plain %s, robust %s",
+            name,
+            stats["fit"]["mean_r2"],
+            _plain(stats["variability_percent"]["plain"]),
+            _plain(stats["variability_percent"]["robust"]),
+        )
     spreads, wall_repeatability = _wall_report(camp, calibrations, item_params, aoi)
     report["wall_features"] = spreads
     grid = observed_grid(calibrations["first"])
@@ -721,8 +747,13 @@ def calibration_report(
             "diagnostics: repeatability (median |relative difference|, %%): coefficients %s, k f %s, specimens' "
             "reflectance %s, R0 %s, n %s",
             {term: _format(value["median_abs_percent"]) for term, value in summary["coefficients"].items()},
-            *(_format(part["median_abs_percent"]) for part in (summary["calibration"], *(
-                summary["specimens"][name] for name in ("reflectance", "R0", "n")))),
+            *(
+                _format(part["median_abs_percent"])
+                for part in (
+                    summary["calibration"],
+                    *(summary["specimens"][name] for name in ("reflectance", "R0", "n")),
+                )
+            ),
         )
     report["paper"] = PAPER_CALIBRATION
     return CalibrationReport(report, tables, calibrations, processed, region)

@@ -82,9 +82,13 @@ def calibration_error(calibration: xr.Dataset, instrument: xr.Dataset, crop) -> 
 def _ceiling_features(item, ingest, chain, instrument, truth, feature_params) -> xr.Dataset:
     """Features of the same data with the true AOI and instrument function, registered with the same maps."""
     aoi = truth["aoi_view"].sel(y=ingest.y, x=ingest.x).astype(np.float32).where(ingest["valid"])
-    refl = reflectance(ingest["intensity"], chain["aoi"]["distance"], aoi, instrument["coef"], instrument.attrs["scale_k"])
+    refl = reflectance(
+        ingest["intensity"], chain["aoi"]["distance"], aoi, instrument["coef"], instrument.attrs["scale_k"]
+    )
     refl = refl.where(ingest["valid"]).astype(np.float32)
-    registered = register(xr.Dataset({"reflectance": refl, "aoi": aoi}).compute(), chain["registered"][["map_x", "map_y"]])
+    registered = register(
+        xr.Dataset({"reflectance": refl, "aoi": aoi}).compute(), chain["registered"][["map_x", "map_y"]]
+    )
     # the same variability feature as the method's: its noise model's relative noise, where it has one
     own = xr.Dataset({"reflectance": refl}).merge(chain["reflectance"].drop_vars("reflectance"))
     return features_stage(registered, own, chain["aoi"].assign(aoi=aoi), roi=item.roi, **feature_params).compute()
@@ -190,14 +194,19 @@ def evaluate_campaign(
             progress(name)
     cap = max_per_class
     training = training_set({n: (features[n], it.cls, it.roi) for n, it in camp.specimens.items()}, max_per_class=cap)
-    best_training = training_set({n: (ceiling[n], it.cls, it.roi) for n, it in camp.specimens.items()}, max_per_class=cap)
+    best_training = training_set(
+        {n: (ceiling[n], it.cls, it.roi) for n, it in camp.specimens.items()}, max_per_class=cap
+    )
     classes = training.attrs["classes"]
     scenes, posterior, correct = {}, [], []
     for name, scene in camp.scenes.items():
         truth_label, truth_classes = read_truth(scene.truth, width=camp.camera.width, height=camp.camera.height)
         labels = labels_stage(features[name], training, **label_params)
         best = labels_stage(
-            ceiling[name], best_training, filter_kind=label_params["filter_kind"], filter_size=label_params["filter_size"]
+            ceiling[name],
+            best_training,
+            filter_kind=label_params["filter_kind"],
+            filter_size=label_params["filter_size"],
         )
         grid = truth_label[labels.y.values[:, None], labels.x.values[None, :]]
         scored = grid >= 0
@@ -207,7 +216,10 @@ def evaluate_campaign(
         posterior.append(free["posterior"].values[has])
         correct.append(free["label"].values[has] == truth_index[has])
         scenes[name] = {
-            **{var: score(labels[var], truth_label, truth_classes, classes)["accuracy"] for var in ("label", "label_filtered")},
+            **{
+                var: score(labels[var], truth_label, truth_classes, classes)["accuracy"]
+                for var in ("label", "label_filtered")
+            },
             "unclassified": float(((labels["label"].values < 0) & scored).sum() / max(int(scored.sum()), 1)),
             "reasons": labels["label"].attrs["unclassified"],
             "ceiling": score(best["label_filtered"], truth_label, truth_classes, classes)["accuracy"],

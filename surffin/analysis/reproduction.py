@@ -72,12 +72,16 @@ _DIAGNOSTICS = "snakemake --cores 2 calibration_diagnostics"
 _MAIN = "snakemake --cores 2"
 
 
-def _row(
-    section: str, quantity: str, paper, surffin, source: str, command: str, origin: str, note: str = ""
-) -> dict:
+def _row(section: str, quantity: str, paper, surffin, source: str, command: str, origin: str, note: str = "") -> dict:
     return {
-        "section": section, "quantity": quantity, "paper": paper, "surffin": surffin,
-        "source": source, "command": command, "origin": origin, "note": note,
+        "section": section,
+        "quantity": quantity,
+        "paper": paper,
+        "surffin": surffin,
+        "source": source,
+        "command": command,
+        "origin": origin,
+        "note": note,
     }
 
 
@@ -103,12 +107,24 @@ def _calibration_rows(diag: Mapping) -> list[dict]:
     first = diag["calibrations"]["first"]
     src = "diagnostics/calibration.json"
     rows = [
-        _row("calibration", "mean R² over the crop's pixels", paper["mean_r2"], first["fit"]["mean_r2"], src, _DIAGNOSTICS,
-             _MEASURED, "the simulator renders eq. 5 exactly, without the real camera's residual systematics"),
         _row(
-            "calibration", "variability across the image, % (A, B, C, D, E)",
+            "calibration",
+            "mean R² over the crop's pixels",
+            paper["mean_r2"],
+            first["fit"]["mean_r2"],
+            src,
+            _DIAGNOSTICS,
+            _MEASURED,
+            "the simulator renders eq. 5 exactly, without the real camera's residual systematics",
+        ),
+        _row(
+            "calibration",
+            "variability across the image, % (A, B, C, D, E)",
             ", ".join(_fmt(paper["variability_percent"][t]) for t in _TERMS),
-            ", ".join(_fmt(first["variability_percent"]["plain"][t]) for t in _TERMS), src, _DIAGNOSTICS, _BUILT,
+            ", ".join(_fmt(first["variability_percent"]["plain"][t]) for t in _TERMS),
+            src,
+            _DIAGNOSTICS,
+            _BUILT,
             _note(_preset("variability"), "plain 100 std/|mean|; E = 1 is the fit's gauge, so E does not vary here"),
         ),
     ]
@@ -116,35 +132,93 @@ def _calibration_rows(diag: Mapping) -> list[dict]:
     index = {t: i for i, t in enumerate(ours["terms"])}
     for a, b in (("C", "D"), ("A", "B"), ("A", "C"), ("A", "D"), ("B", "C"), ("B", "D")):
         theirs = paper["correlation"]["matrix"][_TERMS.index(a)][_TERMS.index(b)]
-        rows.append(_row("calibration", f"correlation {a}-{b} (Table 2)", theirs, ours["matrix"][index[a]][index[b]], src,
-                         _DIAGNOSTICS, _BUILT, _preset("correlation")))
+        rows.append(
+            _row(
+                "calibration",
+                f"correlation {a}-{b} (Table 2)",
+                theirs,
+                ours["matrix"][index[a]][index[b]],
+                src,
+                _DIAGNOSTICS,
+                _BUILT,
+                _preset("correlation"),
+            )
+        )
     own = [w for w in diag["wall_features"] if w["calibration"] == "first" and w["views_in_fit"] == w["views"]]
     for name in ("R0", "n"):
         value = own[0][name]["std"] if own else None
         rows.append(
-            _row("calibration", f"std of {name} on the calibration wall", paper["wall_feature_std"][name], value, src,
-                 _DIAGNOSTICS, _MEASURED, "per-pixel fit over the wall views the calibration was fitted to")
+            _row(
+                "calibration",
+                f"std of {name} on the calibration wall",
+                paper["wall_feature_std"][name],
+                value,
+                src,
+                _DIAGNOSTICS,
+                _MEASURED,
+                "per-pixel fit over the wall views the calibration was fitted to",
+            )
         )
     rep = diag["repeatability"]
     expected = paper["repeatability_percent"]
     if not rep["available"]:
-        rows.append(_row("calibration", "repeatability of two calibration sets", "see below", None, src, _DIAGNOSTICS,
-                         _MEASURED, rep["reason"]))
+        rows.append(
+            _row(
+                "calibration",
+                "repeatability of two calibration sets",
+                "see below",
+                None,
+                src,
+                _DIAGNOSTICS,
+                _MEASURED,
+                rep["reason"],
+            )
+        )
         return rows
     rows += [
-        _row("calibration", "repeatability: coefficients, median |difference| % (A, B, C, D)",
-             f"< {_fmt(expected['coefficients'])}", ", ".join(_fmt(rep["coefficients"][t]["median_abs_percent"]) for t in _TERMS[:4]),
-             src, _DIAGNOSTICS, _MEASURED),
-        _row("calibration", "repeatability: instrument function k f, median |difference| %", "n/a",
-             rep["calibration"]["median_abs_percent"], src, _DIAGNOSTICS, _MEASURED),
+        _row(
+            "calibration",
+            "repeatability: coefficients, median |difference| % (A, B, C, D)",
+            f"< {_fmt(expected['coefficients'])}",
+            ", ".join(_fmt(rep["coefficients"][t]["median_abs_percent"]) for t in _TERMS[:4]),
+            src,
+            _DIAGNOSTICS,
+            _MEASURED,
+        ),
+        _row(
+            "calibration",
+            "repeatability: instrument function k f, median |difference| %",
+            "n/a",
+            rep["calibration"]["median_abs_percent"],
+            src,
+            _DIAGNOSTICS,
+            _MEASURED,
+        ),
     ]
     wall = next(w for w in rep["wall"] if w["wall"] == diag["calibrations"]["first"]["calibration_set"]["wall"])
-    rows.append(_row("calibration", "repeatability: wall reflectance, median |difference| %", expected["reflectance"],
-                     wall["reflectance"]["median_abs_percent"], src, _DIAGNOSTICS, _MEASURED))
+    rows.append(
+        _row(
+            "calibration",
+            "repeatability: wall reflectance, median |difference| %",
+            expected["reflectance"],
+            wall["reflectance"]["median_abs_percent"],
+            src,
+            _DIAGNOSTICS,
+            _MEASURED,
+        )
+    )
     for name in ("R0", "n"):
-        rows.append(_row("calibration", f"repeatability: {name} on the wall / on the specimens, median |difference| %",
-                         expected[name], f"{_fmt(wall[name]['median_abs_percent'])} / {_fmt(rep['specimens'][name]['median_abs_percent'])}",
-                         src, _DIAGNOSTICS, _MEASURED))
+        rows.append(
+            _row(
+                "calibration",
+                f"repeatability: {name} on the wall / on the specimens, median |difference| %",
+                expected[name],
+                f"{_fmt(wall[name]['median_abs_percent'])} / {_fmt(rep['specimens'][name]['median_abs_percent'])}",
+                src,
+                _DIAGNOSTICS,
+                _MEASURED,
+            )
+        )
     return rows
 
 
@@ -162,16 +236,30 @@ def _sensitivity_rows(slopes: Sequence[Mapping], separation: Sequence[Mapping]) 
     rows = []
     for row in slopes:
         rows.append(
-            _row("sensitivity", f"slope of std against K views, {row['parameter']}, {row['noise']} noise {row['sigma']}",
-                 SLOPES[row["parameter"]], _number(row["slope"]), "sensitivity/slopes.csv", _SENSITIVITY, _MEASURED,
-                 f"linearised {_fmt(_number(row['predicted_slope']), 2)}; K >= 3 only: {_fmt(_number(row['slope_from_3']), 2)}")
+            _row(
+                "sensitivity",
+                f"slope of std against K views, {row['parameter']}, {row['noise']} noise {row['sigma']}",
+                SLOPES[row["parameter"]],
+                _number(row["slope"]),
+                "sensitivity/slopes.csv",
+                _SENSITIVITY,
+                _MEASURED,
+                f"linearised {_fmt(_number(row['predicted_slope']), 2)}; K >= 3 only: {_fmt(_number(row['slope_from_3']), 2)}",
+            )
         )
     for row in separation:
         paper = SEPARATION_DEG if (row["noise"], row["level"]) == ("reflectance", "max") else "n/a"
         rows.append(
-            _row("sensitivity", f"separation for std < 10 %, {row['parameter']}, {row['noise']} noise {row['sigma']}, deg",
-                 paper, float(row["required_separation_deg"]), "sensitivity/sensitivity.zarr", _SENSITIVITY, _MEASURED,
-                 "paper: 'about 20 deg or more' at the high reflectance noise" if paper != "n/a" else "")
+            _row(
+                "sensitivity",
+                f"separation for std < 10 %, {row['parameter']}, {row['noise']} noise {row['sigma']}, deg",
+                paper,
+                float(row["required_separation_deg"]),
+                "sensitivity/sensitivity.zarr",
+                _SENSITIVITY,
+                _MEASURED,
+                "paper: 'about 20 deg or more' at the high reflectance noise" if paper != "n/a" else "",
+            )
         )
     return rows
 
@@ -183,20 +271,48 @@ def _feature_rows(summary: Mapping, specimens: Sequence[str]) -> list[dict]:
         stats = items[name]
         spans = {f: 100 * stats[f]["std"] / stats[f]["mean"] for f in ("R0", "n")}
         rows.append(
-            _row("features", f"{name}: mean R0, n (relative std R0, n %)", "see Fig. 14",
-                 f"{_fmt(stats['R0']['mean'])}, {_fmt(stats['n']['mean'])} ({_fmt(spans['R0'], 2)}, {_fmt(spans['n'], 2)})",
-                 "summary.json", _MAIN, _BUILT,
-                 _note(_preset("R0", "n"), f"paper: span within a specimen ~{FEATURE_SPAN_PERCENT['R0']:g} % R0, "
-                       f"~{FEATURE_SPAN_PERCENT['n']:g} % n"))
+            _row(
+                "features",
+                f"{name}: mean R0, n (relative std R0, n %)",
+                "see Fig. 14",
+                f"{_fmt(stats['R0']['mean'])}, {_fmt(stats['n']['mean'])} ({_fmt(spans['R0'], 2)}, {_fmt(spans['n'], 2)})",
+                "summary.json",
+                _MAIN,
+                _BUILT,
+                _note(
+                    _preset("R0", "n"),
+                    f"paper: span within a specimen ~{FEATURE_SPAN_PERCENT['R0']:g} % R0, "
+                    f"~{FEATURE_SPAN_PERCENT['n']:g} % n",
+                ),
+            )
         )
     n = [items[s]["n"]["mean"] for s in specimens]
     r0 = [items[s]["R0"]["mean"] for s in specimens]
-    rows.append(_row("features", "n falls from the smoothest to the roughest specimen", "yes",
-                     "yes" if all(a > b for a, b in pairwise(n)) else "no", "summary.json", _MAIN, _BUILT,
-                     _preset("n", "roughness")))
+    rows.append(
+        _row(
+            "features",
+            "n falls from the smoothest to the roughest specimen",
+            "yes",
+            "yes" if all(a > b for a, b in pairwise(n)) else "no",
+            "summary.json",
+            _MAIN,
+            _BUILT,
+            _preset("n", "roughness"),
+        )
+    )
     peak = r0.index(max(r0))
-    rows.append(_row("features", "specimen of largest mean R0 (paper: rises to S3, drops for S4)", specimens[2] if len(specimens) > 2 else "n/a",
-                     specimens[peak], "summary.json", _MAIN, _BUILT, _preset("R0")))
+    rows.append(
+        _row(
+            "features",
+            "specimen of largest mean R0 (paper: rises to S3, drops for S4)",
+            specimens[2] if len(specimens) > 2 else "n/a",
+            specimens[peak],
+            "summary.json",
+            _MAIN,
+            _BUILT,
+            _preset("R0"),
+        )
+    )
     return rows
 
 
@@ -206,25 +322,60 @@ def _classification_rows(summary: Mapping) -> list[dict]:
         for var in ("label", "label_filtered"):
             accuracy = result.get("accuracy", {}).get(var)
             rows.append(
-                _row("classification", f"{scene}: accuracy of {var} (unclassified counts as wrong)", ACCURACY[var],
-                     None if accuracy is None else accuracy["accuracy"], "summary.json", _MAIN, _MEASURED,
-                     "the classes lie as far apart as the preset's R0 and n put them" if accuracy is not None
-                     else "no truth for this scene")
+                _row(
+                    "classification",
+                    f"{scene}: accuracy of {var} (unclassified counts as wrong)",
+                    ACCURACY[var],
+                    None if accuracy is None else accuracy["accuracy"],
+                    "summary.json",
+                    _MAIN,
+                    _MEASURED,
+                    "the classes lie as far apart as the preset's R0 and n put them"
+                    if accuracy is not None
+                    else "no truth for this scene",
+                )
             )
     return rows
 
 
 def _roughness_rows(relation: Mapping | None) -> list[dict]:
     if relation is None:
-        return [_row("roughness", "relation of mean n and roughness", "nearly linear", None, "roughness/relation.json", _MAIN,
-                     _BUILT, _note("fewer than two specimens carry roughness_mm", _preset("n")))]
+        return [
+            _row(
+                "roughness",
+                "relation of mean n and roughness",
+                "nearly linear",
+                None,
+                "roughness/relation.json",
+                _MAIN,
+                _BUILT,
+                _note("fewer than two specimens carry roughness_mm", _preset("n")),
+            )
+        ]
     return [
-        _row("roughness", "linear relation of mean n and roughness: R²", "nearly linear", relation["r2"], "roughness/relation.json", _MAIN,
-             _BUILT, _note(f"n = {_fmt(relation['intercept'], 4)} {relation['slope']:+.4g} roughness_mm", _preset("n", "roughness"))),
-        _row("roughness", "leave-one-out error of the roughness from n, mm", "n/a", relation["roughness_rmse_mm"],
-             "roughness/relation.json", _MAIN, _MEASURED,
-             "the preset's n is exactly linear in roughness, so this is the pipeline's error of mean n over the slope, "
-             "not the relation's scatter"),
+        _row(
+            "roughness",
+            "linear relation of mean n and roughness: R²",
+            "nearly linear",
+            relation["r2"],
+            "roughness/relation.json",
+            _MAIN,
+            _BUILT,
+            _note(
+                f"n = {_fmt(relation['intercept'], 4)} {relation['slope']:+.4g} roughness_mm", _preset("n", "roughness")
+            ),
+        ),
+        _row(
+            "roughness",
+            "leave-one-out error of the roughness from n, mm",
+            "n/a",
+            relation["roughness_rmse_mm"],
+            "roughness/relation.json",
+            _MAIN,
+            _MEASURED,
+            "the preset's n is exactly linear in roughness, so this is the pipeline's error of mean n over the slope, "
+            "not the relation's scatter",
+        ),
     ]
 
 
@@ -233,9 +384,16 @@ def _runtime_rows(runtime: Mapping[str, Mapping]) -> list[dict]:
     for scene, spec in runtime.items():
         seconds = sum(float(_read_table(path, "\t")[0]["s"]) for path in spec["benchmarks"])
         rows.append(
-            _row("runtime", f"{scene}: {spec['views']} views from raw files to labels, s", RUNTIME_S, seconds,
-                 "logs/benchmarks/*/" + scene + ".tsv", _MAIN, _MEASURED,
-                 f"paper: ~5 min for {RUNTIME_VIEWS} views; here the jobs' wall times summed (each a new process)")
+            _row(
+                "runtime",
+                f"{scene}: {spec['views']} views from raw files to labels, s",
+                RUNTIME_S,
+                seconds,
+                "logs/benchmarks/*/" + scene + ".tsv",
+                _MAIN,
+                _MEASURED,
+                f"paper: ~5 min for {RUNTIME_VIEWS} views; here the jobs' wall times summed (each a new process)",
+            )
         )
     return rows
 
@@ -292,7 +450,10 @@ def to_markdown(rows: Sequence[Mapping]) -> str:
     for row in rows:
         text = (cells.get(key, str)(row[key]) for key in columns)
         lines.append("| " + " | ".join(cell.replace("|", "\\|") for cell in text) + " |")
-    legend = ["The origin column, for the synthetic `paper` campaign (on a real camera's campaign every row is measured):", ""]
+    legend = [
+        "The origin column, for the synthetic `paper` campaign (on a real camera's campaign every row is measured):",
+        "",
+    ]
     legend += [f"- **{origin}**: {meaning}." for origin, meaning in ORIGINS.items()]
     commands = sorted({row["command"] for row in rows})
     return "\n".join([*lines, "", *legend, "", "Regenerate with: " + "; ".join(f"`{c}`" for c in commands), ""])
@@ -354,5 +515,7 @@ def write_comparison(
         runtime=runtime,
     )
     log.info("paper comparison: %d rows", len(rows))
-    header = "# surffin beside the paper (generated by surffin.analysis.reproduction; see docs/paper-reproduction.md)\n\n"
+    header = (
+        "# surffin beside the paper (generated by surffin.analysis.reproduction; see docs/paper-reproduction.md)\n\n"
+    )
     return write_text(output, header + to_markdown(rows))

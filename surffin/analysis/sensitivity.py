@@ -128,7 +128,7 @@ def _check_theta(theta) -> np.ndarray:
 
 
 def _check_point(theta, r0, n) -> np.ndarray:
-    """theta as a checked array; R0 > 0, n > 0.5 and every view lit ((2 - 1/n) theta < 90 deg)."""
+    """Theta as a checked array; R0 > 0, n > 0.5 and every view lit ((2 - 1/n) theta < 90 deg)."""
     theta = _check_theta(theta)
     if not (_is_real(r0) and r0 > 0 and _is_real(n) and n > 0.5):
         raise ValueError(f"the model needs R0 > 0 and n > 0.5, got R0 = {r0!r}, n = {n!r}")
@@ -189,7 +189,9 @@ def _check_positive(name: str, value) -> float:
     return float(value)
 
 
-def linearised_covariance(theta, noise: str, sigma: float, *, r0: float = TRUTH["R0"], n: float = TRUTH["n"]) -> np.ndarray:
+def linearised_covariance(
+    theta, noise: str, sigma: float, *, r0: float = TRUTH["R0"], n: float = TRUTH["n"]
+) -> np.ndarray:
     """Covariance of (R0, n) of the least-squares fit, linearised at the truth.
 
     Parameters
@@ -262,7 +264,9 @@ def configuration_rng(seed: int, case: str, noise: str, level: str, abscissa: in
     if level not in levels:
         raise ValueError(f"unknown level {level!r} of {noise} noise; known: {levels}")
     abscissa = _check_count("abscissa", abscissa, 0)
-    return np.random.default_rng([seed, CASES.index(case), list(NOISE_LEVELS).index(noise), levels.index(level), abscissa])
+    return np.random.default_rng(
+        [seed, CASES.index(case), list(NOISE_LEVELS).index(noise), levels.index(level), abscissa]
+    )
 
 
 def draw_fits(theta, noise: str, sigma: float, draws: int, rng: np.random.Generator) -> xr.Dataset:
@@ -297,7 +301,9 @@ def draw_fits(theta, noise: str, sigma: float, draws: int, rng: np.random.Genera
     else:
         aoi = aoi + sigma * unit
     dims = ("draw", "view")
-    return fit_scattering(xr.DataArray(reflectance, dims=dims), xr.DataArray(aoi, dims=dims), min_views=2, min_spread=0.0)
+    return fit_scattering(
+        xr.DataArray(reflectance, dims=dims), xr.DataArray(aoi, dims=dims), min_views=2, min_spread=0.0
+    )
 
 
 def _statistics(fits: xr.Dataset, theta: np.ndarray, noise: str, sigma_rad: float) -> list[dict]:
@@ -656,9 +662,14 @@ def plot_separation(table: xr.Dataset, path: str | os.PathLike) -> Path:
     -------
     Path
     """
-    fig, frame, panels = _panels(table, "separation", "separation_deg",
-                                 "angular separation of the two views (deg); one view at 45 deg",
-                                 _SEPARATION_STYLES, "upper right")
+    fig, frame, panels = _panels(
+        table,
+        "separation",
+        "separation_deg",
+        "angular separation of the two views (deg); one view at 45 deg",
+        _SEPARATION_STYLES,
+        "upper right",
+    )
     styles = list(_SEPARATION_STYLES.values())
     for ax, _, _, groups in panels:
         for level, group in groups.items():
@@ -695,8 +706,9 @@ def plot_views(table: xr.Dataset, path: str | os.PathLike) -> Path:
     Path
     """
     slopes = _frame(views_slopes(table)).set_index(["noise", "level", "parameter"])["slope"]
-    fig, frame, panels = _panels(table, "views", "n_views", f"number of views K over 0..{SPAN_DEG:g} deg",
-                                 _VIEWS_STYLES, "best")
+    fig, frame, panels = _panels(
+        table, "views", "n_views", f"number of views K over 0..{SPAN_DEG:g} deg", _VIEWS_STYLES, "best"
+    )
     line, predicted_style, bias_style, *references = _VIEWS_STYLES.values()
     for ax, noise, parameter, groups in panels:
         for level, group in groups.items():
@@ -774,8 +786,12 @@ def write_sensitivity(
     paths = {key: out / name for key, name in OUTPUTS.items()}
     start = time.perf_counter()
     table = sensitivity_table(draws, seed)
-    log.info("sensitivity: %d rows (%d draws per configuration) in %.2f s", table.sizes["row"], draws,
-             time.perf_counter() - start)
+    log.info(
+        "sensitivity: %d rows (%d draws per configuration) in %.2f s",
+        table.sizes["row"],
+        draws,
+        time.perf_counter() - start,
+    )
     slopes = views_slopes(table)
     _write_csv(_frame(table), paths["table"])
     table.attrs |= provenance("sensitivity", {"draws": draws, "seed": seed}, version=code_version)
@@ -783,6 +799,7 @@ def write_sensitivity(
     _write_csv(_frame(slopes), paths["slopes"])
     plot_separation(table, paths["separation_figure"])
     plot_views(table, paths["views_figure"])
-    log.info("sensitivity: wrote %s in %s; done in %.2f s", ", ".join(OUTPUTS.values()), out,
-             time.perf_counter() - start)
+    log.info(
+        "sensitivity: wrote %s in %s; done in %.2f s", ", ".join(OUTPUTS.values()), out, time.perf_counter() - start
+    )
     return paths

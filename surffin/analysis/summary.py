@@ -69,7 +69,9 @@ def summarise(
         if name in truth:
             spec = truth[name]
             truth_label, truth_classes = read_truth(spec["path"], width=spec["width"], height=spec["height"])
-            scene["accuracy"] = {v: score(ds[v], truth_label, truth_classes, classes) for v in ("label", "label_filtered")}
+            scene["accuracy"] = {
+                v: score(ds[v], truth_label, truth_classes, classes) for v in ("label", "label_filtered")
+            }
             log.info("%s: accuracy %s", name, {v: s["accuracy"] for v, s in scene["accuracy"].items()})
         summary["scenes"][name] = scene
     return summary

@@ -403,9 +403,7 @@ def _record(schema: dict[str, _Key], build: Callable[..., Any] = dict) -> _Conve
             if name not in schema:
                 close = difflib.get_close_matches(str(name), list(schema), n=1)
                 hint = f" (did you mean {close[0]!r}?)" if close else ""
-                raise _Invalid(
-                    _child(key, name), f"unknown key {name!r}{hint}; expected one of: {', '.join(schema)}"
-                )
+                raise _Invalid(_child(key, name), f"unknown key {name!r}{hint}; expected one of: {', '.join(schema)}")
         fields = {}
         for name, spec in schema.items():
             value = mapping.get(name, spec.default)

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
+from surffin.errors import CampaignError
 from surffin.grid import Roi
 from surffin.io.campaign import Campaign
-from surffin.errors import CampaignError
 from surffin.io.store import provenance
 from surffin.io.viewfile import View
 

@@ -93,20 +93,14 @@ def _chunking(ds: xr.Dataset, chunks: Mapping[str, int]) -> dict[str, int]:
 def _encoding(ds: xr.Dataset) -> dict[str, dict]:
     # Noisy floats gain little from compression and write 2-4x slower with it
     # (NUMERICS.md); masks and labels compress well and keep zarr's default.
-    return {
-        name: {"compressors": None}
-        for name, var in ds.variables.items()
-        if np.issubdtype(var.dtype, np.floating)
-    }
+    return {name: {"compressors": None} for name, var in ds.variables.items() if np.issubdtype(var.dtype, np.floating)}
 
 
 def _strings_as_objects(ds: xr.Dataset) -> xr.Dataset:
     # Fixed-width unicode has no zarr v3 specification; variable-length strings do.
     # Strings are small labels: they are held in memory, never as dask arrays,
     # whose object dtype xarray would have to load to encode anyway.
-    fixed = {
-        name: ds[name].compute().astype(object) for name, var in ds.variables.items() if var.dtype.kind in "UO"
-    }
+    fixed = {name: ds[name].compute().astype(object) for name, var in ds.variables.items() if var.dtype.kind in "UO"}
     coords = {name: arr for name, arr in fixed.items() if name in ds.coords}
     data = {name: arr for name, arr in fixed.items() if name not in ds.coords}
     return ds.assign_coords(coords).assign(data)
@@ -145,9 +139,9 @@ def write_store(
     try:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
-            ds.to_zarr(partial, mode="w-", zarr_format=3, consolidated=True, encoding=_encoding(ds), compute=False).compute(
-                scheduler=scheduler
-            )
+            ds.to_zarr(
+                partial, mode="w-", zarr_format=3, consolidated=True, encoding=_encoding(ds), compute=False
+            ).compute(scheduler=scheduler)
         if path.exists():
             retired = path.parent / f".{path.name}{_RETIRED}{uuid.uuid4().hex[:12]}"
             os.replace(path, retired)

@@ -207,9 +207,7 @@ def read_view(
     intensity = np.asarray(intensity, dtype=np.float32)
     valid = valid_pixels(xyz)
     if not valid.any():
-        raise ViewFileError(
-            f"{path}: no valid pixel (every pixel has xyz NaN or z <= 0); expected at least one"
-        )
+        raise ViewFileError(f"{path}: no valid pixel (every pixel has xyz NaN or z <= 0); expected at least one")
     broken = valid & ~(np.isfinite(intensity) & (intensity >= 0))
     if broken.any():
         row, col = np.argwhere(broken)[0]
@@ -480,9 +478,7 @@ def _npy_header(archive: zipfile.ZipFile, member: str) -> tuple[tuple[int, ...],
     """Shape and dtype of one ``.npy`` member, from its header alone."""
     with archive.open(member) as stream:
         version = np.lib.format.read_magic(stream)
-        read_header = (
-            np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-        )
+        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
         shape, _, dtype = read_header(stream)
         header_size = stream.tell()
     if dtype.hasobject:
@@ -549,8 +545,7 @@ def _inspect_npz(path: Path, width: int, height: int) -> np.ndarray | None:
         found_shape, dtype = headers[name]
         if found_shape != shape or dtype.kind not in kinds:
             raise ViewFileError(
-                f"{path}: array {name!r} is {dtype} of shape {found_shape}; expected {kind_text} "
-                f"array of shape {shape}"
+                f"{path}: array {name!r} is {dtype} of shape {found_shape}; expected {kind_text} array of shape {shape}"
             )
     if "pose" not in headers:
         return None
@@ -638,9 +633,7 @@ def _inspect_ply(path: Path, width: int, height: int) -> None:
         )
     _, count, properties = vertices[0]
     if count != width * height:
-        raise ViewFileError(
-            f"{path}: {count} vertices; expected width*height = {width}*{height} = {width * height}"
-        )
+        raise ViewFileError(f"{path}: {count} vertices; expected width*height = {width}*{height} = {width * height}")
     for name in (*_PLY_XYZ, _PLY_INTENSITY):
         dtype = properties.get(name)
         kinds = "f" if name in _PLY_XYZ else _NUMERIC_KINDS

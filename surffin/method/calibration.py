@@ -70,10 +70,10 @@ import numpy as np
 import xarray as xr
 
 from surffin.errors import CalibrationError, StoreError
-from surffin.method.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW, DEFAULT_WINDOW, frame_angle_of_incidence
 from surffin.io.ingest import describe_file
-from surffin.method.noise import NOISE_VIEWS, NoiseStatistics
 from surffin.io.store import open_store, provenance
+from surffin.method.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW, DEFAULT_WINDOW, frame_angle_of_incidence
+from surffin.method.noise import NOISE_VIEWS, NoiseStatistics
 
 if TYPE_CHECKING:
     from surffin.grid import Roi
@@ -355,7 +355,7 @@ def _rank_one_shape(m_hat: np.ndarray) -> np.ndarray:
 
 
 def _best_ab(cd: np.ndarray, G: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """p = (A, B, C, D) (4, n) with the (A, B) minimising the cost for given (C, D) (2, n), E = 1.
+    """P = (A, B, C, D) (4, n) with the (A, B) minimising the cost for given (C, D) (2, n), E = 1.
 
     For fixed (C, D) the model is linear in (A, B), with design ``V = dm/d(A, B)``:
     a 2x2 solve of ``V^T G V (A, B) = V^T b``.
@@ -560,10 +560,14 @@ def fit_calibration(
     """
     if isinstance(min_obs, bool) or not isinstance(min_obs, int | np.integer) or min_obs < 4:
         raise ValueError(f"min_obs must be an integer >= 4 (the fit has 4 free parameters), got {min_obs!r}")
-    if isinstance(angular_smoothing, bool) or not isinstance(angular_smoothing, int | float) or not (
-        0 <= angular_smoothing < 1
+    if (
+        isinstance(angular_smoothing, bool)
+        or not isinstance(angular_smoothing, int | float)
+        or not (0 <= angular_smoothing < 1)
     ):
-        raise ValueError(f"angular_smoothing must be a fraction of the sensor diagonal in [0, 1), got {angular_smoothing!r}")
+        raise ValueError(
+            f"angular_smoothing must be a fraction of the sensor diagonal in [0, 1), got {angular_smoothing!r}"
+        )
     height, width = stats.shape
     flat = stats.moments.reshape(_N_MOMENTS, -1)
     coef = np.empty((5, flat.shape[1]))
@@ -580,7 +584,9 @@ def fit_calibration(
         angular = _smooth_angular(coef.reshape(5, height, width), sigma).reshape(2, -1)
         for start in range(0, flat.shape[1], _BLOCK):
             block = slice(start, start + _BLOCK)
-            coef[:, block], r2[block], status[block] = _fit_block(flat[:, block], int(min_obs), angular=angular[:, block])
+            coef[:, block], r2[block], status[block] = _fit_block(
+                flat[:, block], int(min_obs), angular=angular[:, block]
+            )
     image = ("y", "x")
     return xr.Dataset(
         {
@@ -618,9 +624,7 @@ def fit_calibration(
     )
 
 
-def reference_scale(
-    coef: np.ndarray, views: Iterable[Observation], roi: Roi, reflectance: float
-) -> tuple[float, dict]:
+def reference_scale(coef: np.ndarray, views: Iterable[Observation], roi: Roi, reflectance: float) -> tuple[float, dict]:
     """The scale k of eq. 6 from views of a reference panel of known reflectance.
 
     On every panel pixel, ``I / (f(d, theta) cos(theta))`` is the panel's
@@ -1081,14 +1085,18 @@ def calibrate(
     )
     parameters = {**aoi, "min_obs": min_obs, "angular_smoothing": angular_smoothing, "exclude": sorted(excluded)}
     inputs = {str(path.relative_to(campaign.root)): describe_file(path) for path in (*wall, *reference.views)}
-    return ds.merge(samples.dataset(ds["coef"].values, scale_k)).merge(noise.dataset()).assign_attrs(
-        scale_k=scale_k,
-        reference_reflectance=reference.reflectance,
-        reference=details,
-        diagnostics=diagnostics,
-        campaign=campaign.name,
-        calibration_set=folders,
-        **provenance("calibration", parameters, inputs),
+    return (
+        ds.merge(samples.dataset(ds["coef"].values, scale_k))
+        .merge(noise.dataset())
+        .assign_attrs(
+            scale_k=scale_k,
+            reference_reflectance=reference.reflectance,
+            reference=details,
+            diagnostics=diagnostics,
+            campaign=campaign.name,
+            calibration_set=folders,
+            **provenance("calibration", parameters, inputs),
+        )
     )
 
 

@@ -38,8 +38,8 @@ import cv2
 import numpy as np
 import xarray as xr
 
-from surffin.grid import Roi
 from surffin.errors import SurffinError
+from surffin.grid import Roi
 from surffin.method.features import UNCERTAINTY, check_grid, check_size, image_filter, select_roi
 
 __all__ = [
@@ -144,7 +144,9 @@ def _pooled(parts: Sequence[xr.Dataset], max_per_class: int | None = None) -> xr
     samples = xr.concat(parts, "sample", data_vars="all", coords="minimal", compat="override", join="exact")
     if max_per_class is not None:
         classes = np.asarray(_names(samples["class"].values))
-        keep = np.sort(np.concatenate([_evenly(np.flatnonzero(classes == c), max_per_class) for c in np.unique(classes)]))
+        keep = np.sort(
+            np.concatenate([_evenly(np.flatnonzero(classes == c), max_per_class) for c in np.unique(classes)])
+        )
         samples = samples.isel(sample=keep)
     return _standardised(samples)
 

@@ -444,7 +444,9 @@ def smooth_uncertainty(
     """
     size, sigma, weights = _smoothing(size, sigma, min_weight)
     if not inflation > 0:
-        raise ValueError(f"inflation must be positive (1: independent errors, inf: fully correlated), got {inflation!r}")
+        raise ValueError(
+            f"inflation must be positive (1: independent errors, inf: fully correlated), got {inflation!r}"
+        )
     try:
         da, uncertainty = xr.align(_as_float(da, "da"), _as_float(uncertainty, "uncertainty"), join="exact")
     except ValueError as exc:

@@ -93,9 +93,7 @@ def _aligned(shape: tuple[int, int], offsets) -> list[tuple[slice, slice]]:
     for size, shifts in zip(shape, zip(*offsets)):
         low = max(0, -min(shifts))
         bounds.append((low, max(low, size - max(0, max(shifts)))))
-    return [
-        tuple(slice(low + shift, high + shift) for (low, high), shift in zip(bounds, offset)) for offset in offsets
-    ]
+    return [tuple(slice(low + shift, high + shift) for (low, high), shift in zip(bounds, offset)) for offset in offsets]
 
 
 def _jump_edges(points: np.ndarray, valid: np.ndarray, jump: float) -> np.ndarray:

@@ -442,8 +442,10 @@ def _roi_mask(roi: Mapping | None, grid, item: str) -> np.ndarray | None:
         (columns >= roi["x"][0]) & (columns < roi["x"][1])
     )[None, :]
     if not inside.any():
-        raise RegistrationError(f"item {item!r}: roi {dict(roi)} does not overlap the grid (sensor rows "
-                                f"{rows[0]}..{rows[-1]}, columns {columns[0]}..{columns[-1]})")
+        raise RegistrationError(
+            f"item {item!r}: roi {dict(roi)} does not overlap the grid (sensor rows "
+            f"{rows[0]}..{rows[-1]}, columns {columns[0]}..{columns[-1]})"
+        )
     return inside.astype(np.uint8) * 255
 
 
@@ -482,13 +484,17 @@ def _homography_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict
         u, v = _apply_homography(matrix, src[inliers, 0], src[inliers, 1])
         col, row = _apply_homography(matrix, *_identity(grid))
         _outside_to_nan(col, row, *grid)
-        return col, row, {
-            "keypoints": len(features[index][0]),
-            "matches": len(src),
-            "inliers": int(inliers.sum()),
-            "rms": float(np.sqrt(np.mean((u - dst[inliers, 0]) ** 2 + (v - dst[inliers, 1]) ** 2))),
-            "homography": matrix.tolist(),
-        }
+        return (
+            col,
+            row,
+            {
+                "keypoints": len(features[index][0]),
+                "matches": len(src),
+                "inliers": int(inliers.sum()),
+                "rms": float(np.sqrt(np.mean((u - dst[inliers, 0]) ** 2 + (v - dst[inliers, 1]) ** 2))),
+                "homography": matrix.tolist(),
+            },
+        )
 
     return one
 

@@ -62,16 +62,22 @@ def roughness_relation(
         non-finite mean n, or all roughness values equal (no line).
     """
     if set(mean_n) != set(roughness_mm):
-        raise SurffinError(f"roughness relation: specimens with n {sorted(mean_n)} differ from those with a roughness {sorted(roughness_mm)}")
+        raise SurffinError(
+            f"roughness relation: specimens with n {sorted(mean_n)} differ from those with a roughness {sorted(roughness_mm)}"
+        )
     names = sorted(mean_n)
     if len(names) < MIN_SPECIMENS:
-        raise SurffinError(f"roughness relation needs at least {MIN_SPECIMENS} specimens with roughness_mm, got {names}")
+        raise SurffinError(
+            f"roughness relation needs at least {MIN_SPECIMENS} specimens with roughness_mm, got {names}"
+        )
     n = np.array([mean_n[k] for k in names], dtype=np.float64)
     r = np.array([roughness_mm[k] for k in names], dtype=np.float64)
     if not np.isfinite(n).all():
         raise SurffinError(f"roughness relation: a specimen has no finite mean n: {dict(zip(names, n.tolist()))}")
     if np.ptp(r) == 0:
-        raise SurffinError(f"roughness relation: all specimens have the same roughness {r[0]} mm; no line can be fitted")
+        raise SurffinError(
+            f"roughness relation: all specimens have the same roughness {r[0]} mm; no line can be fitted"
+        )
     slope, intercept = _line(r, n)
     fitted = intercept + slope * r
     rss = float(((n - fitted) ** 2).sum())
@@ -86,7 +92,12 @@ def roughness_relation(
         "roughness_rmse_mm": float(np.sqrt(np.mean((np.array(loo) - r) ** 2))) if len(names) >= 3 else None,
         "n_range": [float(n.min()), float(n.max())] if n_range is None else [float(v) for v in n_range],
         "specimens": {
-            k: {"mean_n": float(n[i]), "roughness_mm": float(r[i]), "fitted_n": float(fitted[i]), "loo_roughness_mm": loo[i]}
+            k: {
+                "mean_n": float(n[i]),
+                "roughness_mm": float(r[i]),
+                "fitted_n": float(fitted[i]),
+                "loo_roughness_mm": loo[i],
+            }
             for i, k in enumerate(names)
         },
     }

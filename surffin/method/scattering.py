@@ -74,14 +74,14 @@ def _log_cos(n, theta):
 
 
 def _model_g(n, theta):
-    """g = cos(a theta)^n, zero where a theta >= pi/2 (no return)."""
+    """G = cos(a theta)^n, zero where a theta >= pi/2 (no return)."""
     _, logcos, lit = _log_cos(n, theta)
     g = np.exp(n * logcos)
     return g if lit.all() else g * lit
 
 
 def _model_terms(n, theta):
-    """g = cos(a theta)^n and the derivatives of log g w.r.t. n.
+    """G = cos(a theta)^n and the derivatives of log g w.r.t. n.
 
     Returns ``g``, ``h = d log g / dn`` and ``dh = dh/dn``; all three are zero
     where a theta >= pi/2 (no return).
@@ -264,7 +264,9 @@ _OUTPUTS = {
 _DTYPES = {"n_views": np.uint8, "converged": bool, "status": np.uint8}
 
 
-def fit_scattering(reflectance: xr.DataArray, aoi: xr.DataArray, *, min_views: int = 2, min_spread: float = DEFAULT_MIN_SPREAD) -> xr.Dataset:
+def fit_scattering(
+    reflectance: xr.DataArray, aoi: xr.DataArray, *, min_views: int = 2, min_spread: float = DEFAULT_MIN_SPREAD
+) -> xr.Dataset:
     """Per-pixel least-squares fit of the scattering model over the views.
 
     Parameters

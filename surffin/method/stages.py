@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import xarray as xr
 
-from surffin.method.calibration import reflectance
 from surffin.grid import Roi
+from surffin.method.calibration import reflectance
 from surffin.method.classify import NOISE_CORRECTED, UNCLASSIFIED, classify, filter_labels, unclassified_counts
 from surffin.method.features import (
     DEFAULT_SIZE,

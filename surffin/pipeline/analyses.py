@@ -60,6 +60,7 @@ def run_calibration_diagnostics(
     """
     from surffin.analysis.diagnostics import calibration_report, write_report
     from surffin.io.campaign import read_campaign
+
     # to move below the pipeline (surffin.method.calibration): run -> table -> analyses -> run is a cycle
     from surffin.method.calibration import check_calibration
     from surffin.report.diagnostics import calibration_figures
@@ -70,7 +71,11 @@ def run_calibration_diagnostics(
             if path is not None:
                 check_calibration(path, camp)
         found = calibration_report(
-            camp, calibration=calibration, repeat=repeat, repeat_folders=repeat_folders, item_params=item_params,
+            camp,
+            calibration=calibration,
+            repeat=repeat,
+            repeat_folders=repeat_folders,
+            item_params=item_params,
             instrument_truth=instrument_truth,
         )
         if figures_dir is not None:
@@ -133,8 +138,13 @@ def run_paper_comparison(
     """
     from surffin.analysis.reproduction import write_comparison
 
-    inputs = {"summary": summary, "diagnostics": diagnostics, "sensitivity": sensitivity, "slopes": slopes,
-              "relation": relation}
+    inputs = {
+        "summary": summary,
+        "diagnostics": diagnostics,
+        "sensitivity": sensitivity,
+        "slopes": slopes,
+        "relation": relation,
+    }
     with logging_to(log_path):
         return write_comparison(output, inputs, specimens=specimens, runtime=runtime)
 
@@ -171,7 +181,15 @@ def run_figures(
     """
     from surffin.report.figures import write_figures
 
-    inputs = {"calibration": calibration, "training": training, "summary": summary, "features": features,
-              "registered": registered, "labels": labels, "ingest": ingest, "roughness": roughness}
+    inputs = {
+        "calibration": calibration,
+        "training": training,
+        "summary": summary,
+        "features": features,
+        "registered": registered,
+        "labels": labels,
+        "ingest": ingest,
+        "roughness": roughness,
+    }
     with logging_to(log_path):
         return write_figures(outputs, inputs, roi=roi)

@@ -163,8 +163,8 @@ def run_calibration(
     ``calibration:`` section, e.g. a repeat set
     (:func:`surffin.method.calibration.calibration_set`).
     """
-    from surffin.method.calibration import calibrate, calibration_set
     from surffin.io.campaign import read_campaign
+    from surffin.method.calibration import calibrate, calibration_set
 
     params = dict(params or {})
     with logging_to(log_path):
@@ -206,10 +206,15 @@ def run_training(
         }
         ds = training_set(items, max_per_class=max_per_class)
         if extra:
-            ds = combine_training(ds, *(open_store(path, stage="training") for path in extra), max_per_class=max_per_class)
+            ds = combine_training(
+                ds, *(open_store(path, stage="training") for path in extra), max_per_class=max_per_class
+            )
         log.info("training set: %d samples of classes %s", ds.sizes["sample"], ds.attrs["classes"])
         parameters = {"extra": list(extra), "max_per_class": max_per_class}
-        ds.attrs = {**ds.attrs, **provenance("training", parameters, {n: str(s["store"]) for n, s in specimens.items()})}
+        ds.attrs = {
+            **ds.attrs,
+            **provenance("training", parameters, {n: str(s["store"]) for n, s in specimens.items()}),
+        }
         return _write(ds, output, {"sample": 1 << 20}, "training")
 
 
@@ -268,12 +273,16 @@ def run_roughness_relation(
             mean_n[name] = float(n.mean()) if n.size else float("nan")
             spans += list(np.percentile(n, SUPPORT_PERCENTILES)) if n.size else []
         relation = roughness_relation(
-            mean_n, {name: spec["roughness_mm"] for name, spec in specimens.items()},
+            mean_n,
+            {name: spec["roughness_mm"] for name, spec in specimens.items()},
             n_range=(min(spans), max(spans)) if spans else None,
         )
         log.info(
             "roughness relation over %d specimens: n = %.4f %+.4f roughness_mm, R^2 %.4f",
-            len(specimens), relation["intercept"], relation["slope"], relation["r2"],
+            len(specimens),
+            relation["intercept"],
+            relation["slope"],
+            relation["r2"],
         )
         relation["inputs"] = {name: str(spec["store"]) for name, spec in specimens.items()}
         return write_json(output, relation)
@@ -296,6 +305,12 @@ def run_roughness_map(
     """
     params = {"relation": json.loads(Path(relation).read_text())}
     return run_stage(
-        roughness_stage, output, stores={"features": features}, params=params,
-        chunks=chunks, scheduler=scheduler, threads=threads, log_path=log_path,
+        roughness_stage,
+        output,
+        stores={"features": features},
+        params=params,
+        chunks=chunks,
+        scheduler=scheduler,
+        threads=threads,
+        log_path=log_path,
     )

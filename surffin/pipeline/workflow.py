@@ -15,13 +15,13 @@ from functools import cached_property
 
 from surffin.analysis.diagnostics import representative_specimens
 from surffin.io.campaign import Calibration, Campaign, read_campaign
-from surffin.method.calibration import calibration_set
+from surffin.method.calibration import calibration_set, check_calibration
 from surffin.method.roughness import MIN_SPECIMENS
 from surffin.pipeline.parameters import aoi_parameters, feature_parameters
-from surffin.method.calibration import check_calibration
 from surffin.pipeline.table import output_path
 
 __all__ = ["Plan"]
+
 
 @dataclass(frozen=True)
 class Plan:

@@ -69,8 +69,10 @@ def plot_correlation(tables: Mapping[str, Mapping], path: str | os.PathLike) -> 
         ax.set_yticks(range(len(TERMS)), TERMS)
         ax.set_title(title, fontsize=10)
     fig.colorbar(shown, ax=axes, label="correlation across pixels", shrink=0.85)
-    fig.suptitle("Correlation of the calibration coefficients of f = (A + B/d²)(Cθ² + Dθ + E) (paper Table 2; "
-                 "grey: E = 1 does not vary)")
+    fig.suptitle(
+        "Correlation of the calibration coefficients of f = (A + B/d²)(Cθ² + Dθ + E) (paper Table 2; "
+        "grey: E = 1 does not vary)"
+    )
     return save(fig, path)
 
 
@@ -139,11 +141,13 @@ def plot_repeatability(
             ax.set_axis_off()
             ax.text(0.5, 0.5, f"no specimens: no {feature} to compare", ha="center", va="center")
             continue
-        groups = {item: (runs[names[0]][feature].values, runs[names[1]][feature].values)
-                  for item, runs in specimens.items()}
+        groups = {
+            item: (runs[names[0]][feature].values, runs[names[1]][feature].values) for item, runs in specimens.items()
+        }
         _scatter_panel(ax, f"specimens' {feature} (smoothed, roi pixels)", groups, names)
-    fig.suptitle(f"Repeatability: estimates with the {names[1]} calibration against those with the {names[0]} "
-                 f"(red: equal)")
+    fig.suptitle(
+        f"Repeatability: estimates with the {names[1]} calibration against those with the {names[0]} (red: equal)"
+    )
     return save(fig, path)
 
 
@@ -167,10 +171,22 @@ def calibration_figures(diagnostics: CalibrationReport, folder: str | os.PathLik
     folder = Path(folder)
     written = [plot_correlation(diagnostics.correlations, folder / CORRELATION_FIGURE)]
     if "repeat" not in diagnostics.calibrations:
-        written.append(message(folder / REPEATABILITY_FIGURE, "Repeatability of the calibration",
-                               f"no repeatability: {diagnostics.report['repeatability']['reason']}"))
+        written.append(
+            message(
+                folder / REPEATABILITY_FIGURE,
+                "Repeatability of the calibration",
+                f"no repeatability: {diagnostics.report['repeatability']['reason']}",
+            )
+        )
     else:
-        written.append(plot_repeatability(diagnostics.calibrations["first"], diagnostics.calibrations["repeat"],
-                                          diagnostics.specimens, ("first", "repeat"), folder / REPEATABILITY_FIGURE,
-                                          region=diagnostics.region))
+        written.append(
+            plot_repeatability(
+                diagnostics.calibrations["first"],
+                diagnostics.calibrations["repeat"],
+                diagnostics.specimens,
+                ("first", "repeat"),
+                folder / REPEATABILITY_FIGURE,
+                region=diagnostics.region,
+            )
+        )
     return written

@@ -114,7 +114,7 @@ def _robust_range(values, percentiles=_RANGE) -> tuple[float, float] | tuple[Non
 
 
 def _extent(da: xr.DataArray) -> tuple[float, float, float, float]:
-    """imshow extent of a (y, x) image in sensor coordinates (pixel centres on integers)."""
+    """Imshow extent of a (y, x) image in sensor coordinates (pixel centres on integers)."""
     x, y = da["x"].values, da["y"].values
     return x[0] - 0.5, x[-1] + 0.5, y[-1] + 0.5, y[0] - 0.5
 
@@ -142,8 +142,15 @@ def _roi_box(ax, roi: Roi | None) -> None:
 
     (top, bottom), (left, right) = roi.y, roi.x
     ax.add_patch(
-        Rectangle((left - 0.5, top - 0.5), right - left, bottom - top, fill=False, edgecolor="white", linewidth=1.2,
-                  linestyle="--")
+        Rectangle(
+            (left - 0.5, top - 0.5),
+            right - left,
+            bottom - top,
+            fill=False,
+            edgecolor="white",
+            linewidth=1.2,
+            linestyle="--",
+        )
     )
 
 
@@ -214,15 +221,29 @@ def plot_calibration_fit(calibration: xr.Dataset, path: str | os.PathLike) -> Pa
     surface.set_box_aspect(None, zoom=0.82)
     first = ok[0]
     d_mesh, t_mesh = np.meshgrid(d_grid, t_grid)
-    surface.plot_surface(d_mesh, np.degrees(t_mesh), instrument_function(coef[:, 0], d_mesh, t_mesh), cmap="viridis",
-                         alpha=0.55, linewidth=0)
-    surface.scatter(distance[0, first], np.degrees(aoi[0, first]), corrected[0, first], color="red", s=18,
-                    depthshade=False, label="wall views")
+    surface.plot_surface(
+        d_mesh,
+        np.degrees(t_mesh),
+        instrument_function(coef[:, 0], d_mesh, t_mesh),
+        cmap="viridis",
+        alpha=0.55,
+        linewidth=0,
+    )
+    surface.scatter(
+        distance[0, first],
+        np.degrees(aoi[0, first]),
+        corrected[0, first],
+        color="red",
+        s=18,
+        depthshade=False,
+        label="wall views",
+    )
     surface.set_xlabel("distance d (m)")
     surface.set_ylabel("AOI θ (deg)")
     surface.set_zlabel("I / cos θ (camera units)", labelpad=10)
-    surface.set_title(f"pixel 1 (y {rows[0]}, x {columns[0]}): data and fitted f(d, θ), R² = {float(r2[0]):.4f}",
-                      fontsize=10)
+    surface.set_title(
+        f"pixel 1 (y {rows[0]}, x {columns[0]}): data and fitted f(d, θ), R² = {float(r2[0]):.4f}", fontsize=10
+    )
     surface.legend(loc="upper right", fontsize=9)
     by_distance, by_angle = fig.add_subplot(1, 3, 2), fig.add_subplot(1, 3, 3)
     for index in range(obs.sizes["sample_pixel"]):
@@ -267,14 +288,28 @@ def plot_r2_map(calibration: xr.Dataset, path: str | os.PathLike) -> Path:
     fig = figure(8.5, 6.0)
     ax = fig.add_subplot()
     mean = f"{values.mean():.4f}" if values.size else "n/a"
-    _image(ax, r2, f"Calibration fit: R² per pixel (mean {mean}, paper {PAPER_MEAN_R2:g}; {values.size} of {fitted.size} "
-           "pixels fitted, grey: none)", "coefficient of determination R²", "viridis", (low, 1.0))
+    _image(
+        ax,
+        r2,
+        f"Calibration fit: R² per pixel (mean {mean}, paper {PAPER_MEAN_R2:g}; {values.size} of {fitted.size} "
+        "pixels fitted, grey: none)",
+        "coefficient of determination R²",
+        "viridis",
+        (low, 1.0),
+    )
     if "sample_y" in calibration.coords:
         ys, xs = calibration["sample_y"].values, calibration["sample_x"].values
         ax.scatter(xs, ys, marker="o", s=60, facecolors="none", edgecolors="red", linewidths=1.5)
         for index, (y, x) in enumerate(zip(ys, xs)):
-            ax.annotate(str(index + 1), (x, y), xytext=(5, 5), textcoords="offset points", color="red",
-                        fontsize=11, fontweight="bold")
+            ax.annotate(
+                str(index + 1),
+                (x, y),
+                xytext=(5, 5),
+                textcoords="offset points",
+                color="red",
+                fontsize=11,
+                fontweight="bold",
+            )
     ax.title.set_fontsize(10)
     return save(fig, path)
 
@@ -358,12 +393,23 @@ def plot_wall_reflectance(calibration: xr.Dataset, path: str | os.PathLike) -> P
     ok = np.isfinite(aoi) & np.isfinite(reflectance)
     chosen = np.flatnonzero(ok)[subsample(int(ok.sum()), _MAX_POINTS)]
     polar = fig.add_subplot(grid[:, 1], projection="polar")
-    polar.scatter(aoi[chosen], reflectance[chosen], s=4, alpha=0.35, color="tab:blue",
-                  label=f"wall pixels ({chosen.size} of {obs.sizes['wall_sample']} samples, "
-                  f"{np.unique(obs['wall_view'].values).size} views)")
+    polar.scatter(
+        aoi[chosen],
+        reflectance[chosen],
+        s=4,
+        alpha=0.35,
+        color="tab:blue",
+        label=f"wall pixels ({chosen.size} of {obs.sizes['wall_sample']} samples, "
+        f"{np.unique(obs['wall_view'].values).size} views)",
+    )
     theta = np.radians(np.linspace(0.0, 90.0, 181))
-    polar.plot(theta, rho * np.cos(theta), color="red", linewidth=2,
-               label=f"ideal Lambertian ρ_wall cos θ, ρ_wall = 1/k = {rho:.3f}")
+    polar.plot(
+        theta,
+        rho * np.cos(theta),
+        color="red",
+        linewidth=2,
+        label=f"ideal Lambertian ρ_wall cos θ, ρ_wall = 1/k = {rho:.3f}",
+    )
     top = max(rho, float(np.percentile(reflectance[chosen], 99.5)) if chosen.size else rho)
     _polar_quadrant(polar, 1.1 * top)
     polar.set_title("reflectance vs angle of incidence θ (deg) of the calibration wall")
@@ -421,8 +467,14 @@ def plot_features(
     for ax, (name, title, cmap, percentiles, log_scale) in zip(axes.ravel(), panels):
         if name not in features:
             ax.axis("off")
-            ax.text(0.5, 0.5, f"no {name} in this features store:\nrecompute it with this surffin", ha="center",
-                    va="center", fontsize=11)
+            ax.text(
+                0.5,
+                0.5,
+                f"no {name} in this features store:\nrecompute it with this surffin",
+                ha="center",
+                va="center",
+                fontsize=11,
+            )
             continue
         limits = _robust_range(region[name].values, percentiles)
         _image(ax, features[name], title, f"{name} (1)", cmap, limits, log_scale=log_scale)
@@ -443,8 +495,13 @@ def plot_features(
     r0, n = (float(np.nanmedian(region[name].values)) for name in ("R0", "n"))
     if np.isfinite(r0) and np.isfinite(n):
         theta = np.radians(np.linspace(0.0, 90.0, 181))
-        polar.plot(theta, scattering_model(theta, r0, n), color="black", linewidth=2,
-                   label=f"model at median R0 = {r0:.3f}, n = {n:.3f}")
+        polar.plot(
+            theta,
+            scattering_model(theta, r0, n),
+            color="black",
+            linewidth=2,
+            label=f"model at median R0 = {r0:.3f}, n = {n:.3f}",
+        )
         r_max = max(r_max, r0)
     _polar_quadrant(polar, 1.1 * r_max if r_max > 0 else 1.0)
     polar.set_title("registered reflectance vs angle of incidence θ (deg)")
@@ -453,7 +510,9 @@ def plot_features(
     what = f"specimen of class {attrs['class']}" if attrs.get("kind") == "specimen" else attrs.get("kind", "item")
     title = f"{attrs.get('item', '')} ({what}): features, smoothed {attrs.get('smoothing_size', '?')} px"
     if "uncertainty_effective_pixels" in attrs:
-        title += f"; uncertainties for {attrs['uncertainty_effective_pixels']:.1f} effectively independent px per window"
+        title += (
+            f"; uncertainties for {attrs['uncertainty_effective_pixels']:.1f} effectively independent px per window"
+        )
     fig.suptitle(title)
     return save(fig, path)
 
@@ -482,8 +541,11 @@ def plot_feature_space(training: xr.Dataset, path: str | os.PathLike) -> Path:
     column = {name: index for index, name in enumerate(training["feature"].values.tolist())}
     labels = np.asarray(training["class"].values.tolist())
     pairs = (("n", "R0"), ("variability", "R0"), ("variability", "n"))
-    names = {"R0": "R0 (reflectance at normal incidence)", "n": "n (scattering coefficient)",
-             "variability": "spatial reflectance variability"}
+    names = {
+        "R0": "R0 (reflectance at normal incidence)",
+        "n": "n (scattering coefficient)",
+        "variability": "spatial reflectance variability",
+    }
     fig = figure(16.0, 5.4)
     axes = fig.subplots(1, 3)
     for seed, name in enumerate(classes):
@@ -492,9 +554,16 @@ def plot_feature_space(training: xr.Dataset, path: str | os.PathLike) -> Path:
         for ax, (x_name, y_name) in zip(axes, pairs):
             x, y = values[chosen, column[x_name]], values[chosen, column[y_name]]
             ax.scatter(x, y, s=3, alpha=0.25, color=colours[name], rasterized=True)
-            ax.scatter(np.median(values[members, column[x_name]]), np.median(values[members, column[y_name]]),
-                       s=120, marker="X", color=colours[name], edgecolors="black", linewidths=1.0,
-                       label=f"{name} ({members.size} px)")
+            ax.scatter(
+                np.median(values[members, column[x_name]]),
+                np.median(values[members, column[y_name]]),
+                s=120,
+                marker="X",
+                color=colours[name],
+                edgecolors="black",
+                linewidths=1.0,
+                label=f"{name} ({members.size} px)",
+            )
     for ax, (x_name, y_name) in zip(axes, pairs):
         ax.set_xlabel(names[x_name])
         ax.set_ylabel(names[y_name])
@@ -556,8 +625,14 @@ def plot_labels(
     axes = fig.subplots(1, 2)
     for ax, variable in zip(axes, ("label", "label_filtered")):
         label = labels[variable]
-        ax.imshow(background.values, cmap=colormap("gray", bad="black"), vmin=low, vmax=high,
-                  extent=_extent(label), interpolation="nearest")
+        ax.imshow(
+            background.values,
+            cmap=colormap("gray", bad="black"),
+            vmin=low,
+            vmax=high,
+            extent=_extent(label),
+            interpolation="nearest",
+        )
         overlay = np.zeros((*label.shape, 4))
         overlay[label.values == UNCLASSIFIED] = _UNCLASSIFIED_COLOUR
         for index, name in enumerate(classes):
@@ -577,8 +652,9 @@ def plot_labels(
     if reasons:
         counts = ", ".join(f"{reason.replace('_', ' ')} {count}" for reason, count in reasons.items())
         total = int((labels["label"].values == UNCLASSIFIED).sum())
-        fig.supxlabel(f"unclassified pixels (both panels, black): {total} of {labels['label'].size}: {counts}",
-                      fontsize=9)
+        fig.supxlabel(
+            f"unclassified pixels (both panels, black): {total} of {labels['label'].size}: {counts}", fontsize=9
+        )
     return save(fig, path)
 
 
@@ -602,8 +678,14 @@ def plot_roughness(roughness: xr.Dataset, path: str | os.PathLike) -> Path:
     left, right = fig.subplots(1, 2, width_ratios=(1.6, 1))
     inside = roughness["roughness"].where(~roughness["extrapolated"])
     limits = _robust_range(inside.values)
-    _image(left, inside, "indicative roughness (grey: outside the specimens' range of n)", "roughness (mm)",
-           "viridis", limits)
+    _image(
+        left,
+        inside,
+        "indicative roughness (grey: outside the specimens' range of n)",
+        "roughness (mm)",
+        "viridis",
+        limits,
+    )
     left.set_xlabel("sensor column x (px)")
     left.set_ylabel("sensor row y (px)")
     specimens = relation["specimens"]
@@ -613,8 +695,12 @@ def plot_roughness(roughness: xr.Dataset, path: str | os.PathLike) -> Path:
     for name, x, y in zip(specimens, r, n):
         right.annotate(name, (x, y), textcoords="offset points", xytext=(5, 3))
     line = np.linspace(0.0, 1.1 * r.max(), 50)
-    right.plot(line, relation["intercept"] + relation["slope"] * line, color="C3",
-               label=f"n = {relation['intercept']:.3f} {relation['slope']:+.3f} r, R² {relation['r2']:.3f}")
+    right.plot(
+        line,
+        relation["intercept"] + relation["slope"] * line,
+        color="C3",
+        label=f"n = {relation['intercept']:.3f} {relation['slope']:+.3f} r, R² {relation['r2']:.3f}",
+    )
     right.set_xlabel("reference roughness r (mm)")
     right.set_ylabel("mean n of the specimen")
     right.set_title("specimens' relation (least squares)")
@@ -744,9 +830,7 @@ def write_figures(
         missing = [name for name in FIGURE_KINDS[kind] if given[name] is None]
         if missing:
             raise ValueError(f"figure {kind!r} needs {missing}")
-    opened = {
-        name: open_store(path) for name, path in given.items() if path is not None and name != "summary"
-    }
+    opened = {name: open_store(path) for name, path in given.items() if path is not None and name != "summary"}
     if given["summary"] is not None:
         opened["summary"] = json.loads(Path(given["summary"]).read_text())
     scene = opened["labels"].attrs.get("item") if "labels" in opened else None
@@ -757,7 +841,9 @@ def write_figures(
         "wall_reflectance": lambda path: plot_wall_reflectance(opened["calibration"], path),
         "feature_space": lambda path: plot_feature_space(opened["training"], path),
         "accuracy_table": lambda path: write_table(accuracy_table(opened["summary"]), path),
-        "features": lambda path: plot_features(opened["features"], opened["registered"], path, roi=Roi.from_mapping(roi)),
+        "features": lambda path: plot_features(
+            opened["features"], opened["registered"], path, roi=Roi.from_mapping(roi)
+        ),
         "labels": lambda path: plot_labels(
             opened["labels"], opened["ingest"], path, scores=opened.get("summary", {}).get("scenes", {}).get(scene)
         ),

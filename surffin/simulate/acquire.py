@@ -22,6 +22,9 @@ import numpy as np
 import yaml
 
 from surffin.errors import CampaignError
+from surffin.io.files import write_atomically
+from surffin.io.store import provenance, write_store
+from surffin.io.viewfile import VIEW_SUFFIXES, write_view
 from surffin.simulate.instrument import Instrument, draw_instrument, observe
 from surffin.simulate.plan import Acquisition, plan_campaign
 from surffin.simulate.presets import PRESETS, Preset
@@ -33,9 +36,6 @@ from surffin.simulate.truth import (
     scene_truth_label,
 )
 from surffin.simulate.validation import FORMATS, UNITS
-from surffin.io.store import provenance, write_store
-from surffin.io.files import write_atomically
-from surffin.io.viewfile import VIEW_SUFFIXES, write_view
 
 __all__ = ["simulate_campaign"]
 
@@ -174,7 +174,11 @@ def _describe(acquisition: Acquisition, reference: Geometry, run: _Run) -> dict:
         return {"reference": {"views": acquisition.folder, "reflectance": float(preset.reference.R0), "roi": roi}}
     if acquisition.kind == "specimen":
         specimen = acquisition.specimen
-        entry = {"class": specimen.cls, **_views_entry(acquisition), "roi": _roi(acquisition, reference, preset.label_margin)}
+        entry = {
+            "class": specimen.cls,
+            **_views_entry(acquisition),
+            "roi": _roi(acquisition, reference, preset.label_margin),
+        }
         if specimen.roughness_mm is not None:
             entry["roughness_mm"] = specimen.roughness_mm
         return entry

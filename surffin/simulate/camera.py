@@ -90,9 +90,7 @@ class PinholeCamera:
         return self.fx * points[..., 0] / z + self.cx, self.fy * points[..., 1] / z + self.cy
 
 
-def look_at_pose(
-    target, distance: float, tilt: float, azimuth: float, roll: float = 0.0
-) -> np.ndarray:
+def look_at_pose(target, distance: float, tilt: float, azimuth: float, roll: float = 0.0) -> np.ndarray:
     """Camera-to-world pose of a camera looking at a point of a wall facing -Z.
 
     The camera sits at ``target + distance * (sin a cos phi, sin a sin phi, -cos a)``

@@ -35,7 +35,9 @@ def cli_parser(parser: argparse.ArgumentParser) -> None:
         "--format", dest="fmt", choices=FORMATS, help="view file form; mixed cycles npz/ply/raw (default: npz)"
     )
     parser.add_argument("--units", choices=UNITS, help="unit of xyz in npz and ply files (default: m)")
-    parser.add_argument("--no-poses", dest="poses", action="store_false", default=None, help="do not write camera poses")
+    parser.add_argument(
+        "--no-poses", dest="poses", action="store_false", default=None, help="do not write camera poses"
+    )
     parser.add_argument("--truth", default=None, help="folder of the truth stores (default: <directory>-truth)")
 
 

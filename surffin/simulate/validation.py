@@ -101,7 +101,9 @@ def _specimens(kind: str, table: tuple) -> tuple[Specimen, ...]:
 
 def _other_pieces(specimens: tuple[Specimen, ...], thicknesses: tuple[float, ...]) -> tuple[Specimen, ...]:
     """Second pieces (``<name>-b``) of the specimens' classes, textures and thicknesses of their own."""
-    return tuple(another_piece(specimen, "b", thickness) for specimen, thickness in zip(specimens, thicknesses, strict=True))
+    return tuple(
+        another_piece(specimen, "b", thickness) for specimen, thickness in zip(specimens, thicknesses, strict=True)
+    )
 
 
 def _plaster() -> Preset:
@@ -142,7 +144,9 @@ def _concrete() -> Preset:
         specimens=specimens,
         scenes=(
             SceneLayout(specimens, _ROTATIONS[:3], _SCENE_DISTANCE, _SCENE_TILTS),
-            SceneLayout(_other_pieces(specimens, (0.018, 0.011, 0.014)), (270.0, 90.0, 180.0), _SCENE_DISTANCE, _SCENE_TILTS),
+            SceneLayout(
+                _other_pieces(specimens, (0.018, 0.011, 0.014)), (270.0, 90.0, 180.0), _SCENE_DISTANCE, _SCENE_TILTS
+            ),
         ),
     )
 
