@@ -43,10 +43,8 @@ def evaluate(directory) -> dict:
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    directory = tmp_path_factory.mktemp("accuracy") / "tiny"
-    surffin.simulate_campaign(directory, TINY, 0)
-    return evaluate(directory)
+def tiny(tiny_campaign):
+    return evaluate(tiny_campaign)
 
 
 def test_features_are_close_to_the_truth_and_to_what_the_data_allow(tiny):

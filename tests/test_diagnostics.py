@@ -159,10 +159,11 @@ def test_calibration_compared_with_itself_and_with_a_known_perturbation():
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
+def tiny(tiny_campaign, tmp_path_factory):
     """A tiny campaign, its calibration without one wall view, the repeat calibration and the truth."""
     root = tmp_path_factory.mktemp("diagnostics")
-    surffin.simulate_campaign(root / "raw", "tiny")
+    (root / "raw").symlink_to(tiny_campaign)
+    (root / "raw-truth").symlink_to(f"{tiny_campaign}-truth")
     processed = root / "processed"
     params = {"exclude": [HELD_OUT]}
     first = run_calibration(root / "raw", processed / "calibration.zarr", params=params)

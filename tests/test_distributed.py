@@ -20,12 +20,10 @@ CHUNKS = {"y": 16, "x": 24}
 
 
 @pytest.fixture(scope="module")
-def campaign(tmp_path_factory):
+def campaign(tiny_campaign, tmp_path_factory):
     """A tiny campaign with the stores the feature stage reads, for a specimen (roi) and the scene."""
-    root = tmp_path_factory.mktemp("distributed")
-    surffin.simulate_campaign(root / "raw", preset="tiny", seed=0)
-    camp = surffin.read_campaign(root / "raw")
-    processed = root / "processed"
+    camp = surffin.read_campaign(tiny_campaign)
+    processed = tmp_path_factory.mktemp("distributed") / "processed"
     calibration = run_calibration(camp.path, processed / "calibration.zarr")
     for item in ("S1", "T1"):
         store = {stage: processed / stage / f"{item}.zarr" for stage in ("ingest", "aoi", "reflectance", "registered")}

@@ -351,9 +351,8 @@ def test_run_figures_refuses_unknown_kinds_and_missing_inputs(stores, tmp_path):
 # --- the calibration's kept observations ------------------------------------------------------------
 
 
-def test_calibrate_keeps_raw_wall_observations_with_their_reflectance(tmp_path):
-    surffin.simulate_campaign(tmp_path / "raw", preset="tiny", seed=0)
-    camp = surffin.read_campaign(tmp_path / "raw")
+def test_calibrate_keeps_raw_wall_observations_with_their_reflectance(tiny_campaign):
+    camp = surffin.read_campaign(tiny_campaign)
     ds = calibrate(camp)
     wall = camp.calibration.wall
     views = {path.stem: camp.read_view(path) for path in wall}

@@ -19,7 +19,6 @@ from pathlib import Path
 import pytest
 import xarray as xr
 
-import surffin
 
 REPO = Path(__file__).resolve().parents[1]
 TIMEOUT = 300
@@ -90,9 +89,8 @@ def assert_identical_stores(stores: list[Path], processed: Path, reference: Path
 
 
 @pytest.mark.slow  # full snakemake runs, one killed
-def test_killed_run_leaves_complete_stores_and_completes_identically(tmp_path):
-    campaign = tmp_path / "raw"
-    surffin.simulate_campaign(campaign, preset="tiny", seed=0)
+def test_killed_run_leaves_complete_stores_and_completes_identically(tiny_campaign, tmp_path):
+    campaign = tiny_campaign
     reference = start(tmp_path / "reference", campaign)
     killed = tmp_path / "killed"
     kill_after_first_store(start(killed, campaign), killed / "processed")

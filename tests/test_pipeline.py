@@ -24,11 +24,9 @@ PARAMS = {"window": 9, "size": 5, "variability_size": 7, "min_views": 2, "min_sp
 
 
 @pytest.fixture(scope="module")
-def campaign(tmp_path_factory):
-    root = tmp_path_factory.mktemp("pipeline")
-    surffin.simulate_campaign(root / "raw", preset="tiny", seed=0)
-    camp = surffin.read_campaign(root / "raw")
-    return camp, run_calibration(camp.path, root / "calibration.zarr")
+def campaign(tiny_campaign, tmp_path_factory):
+    camp = surffin.read_campaign(tiny_campaign)
+    return camp, run_calibration(camp.path, tmp_path_factory.mktemp("pipeline") / "calibration.zarr")
 
 
 def chain_jobs(camp, calibration, item, folder):

@@ -45,8 +45,9 @@ def simulate(tmp_path_factory, name, preset=TINY, **kwargs):
 
 
 @pytest.fixture(scope="module")
-def noisy(tmp_path_factory):
-    return simulate(tmp_path_factory, "noisy")
+def noisy(tiny_campaign):
+    """The session's tiny campaign (seed 0) and its truth."""
+    return tiny_campaign, Path(f"{tiny_campaign}-truth")
 
 
 @pytest.fixture(scope="module")
