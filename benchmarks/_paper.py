@@ -12,7 +12,7 @@ import surffin
 
 @contextlib.contextmanager
 def paper_campaign(path: Path | None) -> Iterator[tuple[surffin.io.campaign.Campaign, Path]]:
-    """The campaign at ``path``, or the ``paper`` preset (seed 0) rendered into a temporary folder.
+    """Yield the campaign at ``path``, or the ``paper`` preset (seed 0) rendered into a temporary folder.
 
     Yields the validated campaign and its truth folder (``<campaign>-truth``); a
     rendered campaign is removed on exit, so read its truth inside the block.

@@ -2,32 +2,25 @@
 
 Run by hand: ``python benchmarks/bench_aoi.py [--repeat N] [--subset N]``.
 
-Table 1, one row per window (``15-120``: the adaptive support, windows of 15 px
-doubling up to 120 px while the surface stays planar), on a scene: the kernel's median time per frame, its
-best (the machine is shared: the gap shows the load) and the median rate; a
-scipy cKDTree PCA (k = window**2 nearest points, tree build + queries on a
-subset of pixels, extrapolated per pixel) in the same process, and the ratio;
-the AOI error against the truth (median and 95th percentile of |aoi - truth|,
-and the median of aoi - truth, over the pixels with a normal) and the share of
-valid pixels without one. The scene: a wall 0.8 m away tilted by 25 deg, with a
-2 cm proud rectangular specimen (parallel to the wall, so the true normal is the
-same everywhere) over the central third of the image.
+Table 1, one row per window (``15-120``: the adaptive support, windows of 15 px doubling up to 120 px while the
+surface stays planar), on a scene: the kernel's median time per frame, its best (the machine is shared: the gap
+shows the load) and the median rate; a scipy cKDTree PCA (k = window**2 nearest points, tree build + queries on a
+subset of pixels, extrapolated per pixel) in the same process, and the ratio; the AOI error against the truth
+(median and 95th percentile of |aoi - truth|, and the median of aoi - truth, over the pixels with a normal) and the
+share of valid pixels without one. The scene: a wall 0.8 m away tilted by 25 deg, with a 2 cm proud rectangular
+specimen (parallel to the wall, so the true normal is the same everywhere) over the central third of the image.
 
-Table 2, the median AOI error |aoi - truth| of a plain wall per window, distance
-and tilt: what the default window is chosen on (METHOD.md: calibration views at
-0.3-1.0 m, tilts 0-30 deg; the paper's AOI noise 0.27-1.7 deg).
+Table 2, the median AOI error |aoi - truth| of a plain wall per window, distance and tilt: what the default window
+is chosen on (METHOD.md: calibration views at 0.3-1.0 m, tilts 0-30 deg; the paper's AOI noise 0.27-1.7 deg).
 
-Table 3, the bias: the median signed error aoi - truth on the same walls, of the
-kernel (all pixels with a normal) and of a PCA (total least squares) plane fit,
-the estimator the kernel replaced, computed here by brute force on the centred
-windows of a sample of pixels: with depth noise along the ray, PCA overestimates
-the AOI, by ~1/window^2. What the kernel keeps at small windows near normal
-incidence (e.g. +1.3 deg at 7 px, 0 deg tilt, 0.3 m) is not a tilt of its
-normals but the fold of arccos(|v . n|) at 0: a noisy normal can only make an
-AOI near 0 larger. It vanishes where the AOI is far from 0 (60 deg tilt).
+Table 3, the bias: the median signed error aoi - truth on the same walls, of the kernel (all pixels with a normal)
+and of a PCA (total least squares) plane fit, the estimator the kernel replaced, computed here by brute force on the
+centred windows of a sample of pixels: with depth noise along the ray, PCA overestimates the AOI, by ~1/window^2.
+What the kernel keeps at small windows near normal incidence is not a tilt of its normals but the fold of
+arccos(|v . n|) at 0: a noisy normal can only make an AOI near 0 larger. It vanishes where the AOI is far from 0
+(60 deg tilt).
 
-The camera: pinhole, fx 565, fy 579, principal point at the centre; 0.9 mm
-Gaussian depth noise along each ray.
+The camera: pinhole, fx 565, fy 579, principal point at the centre; 0.9 mm Gaussian depth noise along each ray.
 """
 
 from __future__ import annotations
@@ -122,6 +115,7 @@ def label(window: int, largest: int) -> str:
 
 
 def main() -> None:
+    """Parse the command line and print the three tables."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=15, help="timed runs per window (median reported)")
     parser.add_argument("--subset", type=int, default=2000, help="pixels of the cKDTree and PCA references")

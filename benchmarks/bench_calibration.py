@@ -4,7 +4,7 @@ Run by hand: ``python benchmarks/bench_calibration.py [--campaign DIR] [--views 
 
 The campaign: ``--campaign`` (a rendered ``paper`` preset with its truth beside it in
 ``<DIR>-truth``), by default ``/tmp/clone/data/raw`` when it exists, else the paper preset
-rendered by ``surffin.simulate_campaign`` into a temporary directory (~1 min).
+rendered by ``surffin.simulate_campaign`` into a temporary directory.
 
 Table 1, time of a calibration fit of ``--views`` wall views over the full 640x480 sensor,
 per stage: view reading, AOI (``surffin.method.geometry``), accumulation of the sufficient
@@ -51,6 +51,7 @@ HELD_OUT = "w050"
 
 
 def campaign_dir(path: Path | None) -> Path:
+    """Return ``path``, else :data:`DEFAULT_CAMPAIGN` if it holds a campaign, else a newly rendered ``paper`` preset."""
     if path is not None:
         return path
     if (DEFAULT_CAMPAIGN / "campaign.yaml").is_file():
@@ -69,6 +70,7 @@ def true_aoi(view) -> np.ndarray:
 
 
 def timed(function, *args):
+    """Call ``function(*args)``; return its result and the seconds it took."""
     start = time.perf_counter()
     out = function(*args)
     return out, time.perf_counter() - start
@@ -118,10 +120,28 @@ def scipy_reference(raw: np.ndarray, start) -> tuple[np.ndarray, float]:
 
 
 def row(label, *cells, width=14):
+    """Print one table row: ``label``, then the cells right-aligned in columns of ``width``."""
     print(f"{label:<44}" + "".join(f"{cell:>{width}}" for cell in cells))
 
 
 def held_out_reflectance(camp, ds, rho_wall):
+    """Return the errors of the calibrated reflectance and of the AOI on the held-out wall view.
+
+    Parameters
+    ----------
+    camp : Campaign
+    ds : Dataset
+        A calibration store (``coef``, ``scale_k``) fitted without the held-out view.
+    rho_wall : float
+        The wall's true reflectance.
+
+    Returns
+    -------
+    error : ndarray
+        ``R / (rho_wall cos(theta)) - 1`` over the finite pixels, theta the true AOI (from the view's pose).
+    aoi_error : ndarray
+        Estimated minus true AOI, degrees, over the finite pixels.
+    """
     (path,) = [path for path in camp.calibration.wall if path.stem == HELD_OUT]
     view = camp.read_view(path)
     aoi, distance = frame_angle_of_incidence(view.xyz, DEFAULT_WINDOW)
@@ -140,6 +160,7 @@ def held_out_reflectance(camp, ds, rho_wall):
 
 
 def main() -> None:
+    """Parse the command line, time and check the calibration, and print the tables."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--campaign", type=Path, default=None)
     parser.add_argument("--views", type=int, default=100)

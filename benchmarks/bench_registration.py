@@ -1,32 +1,27 @@
 """Accuracy and speed of co-registration (surffin.method.registration) on a synthetic paper campaign.
 
-Run by hand: ``python benchmarks/bench_registration.py [--campaign DIR] [--truth DIR]``.
-Without ``--campaign`` it renders the ``paper`` preset (seed 0) into a temporary folder
-(about a minute). The error of a map is measured against the simulator's truth
-(``<campaign>-truth/<item>.zarr``, ``u_ref``/``v_ref``) with
-:func:`surffin.method.registration.registration_error`: for each reference pixel, the distance in the
-reference image between the pixel and the true position of the point its map sends it to.
+Run by hand: ``python benchmarks/bench_registration.py [--campaign DIR] [--truth DIR]``. Without ``--campaign`` it
+renders the ``paper`` preset (seed 0) into a temporary folder. The error of a map is measured against the
+simulator's truth (``<campaign>-truth/<item>.zarr``, ``u_ref``/``v_ref``) with
+:func:`surffin.method.registration.registration_error`: for each reference pixel, the distance in the reference
+image between the pixel and the true position of the point its map sends it to.
 
-Table 1, per item and method: median error (pixels) per non-reference view over all mapped
-pixels, and over the specimen top faces (truth ``label`` >= 0: the surface that is classified),
-the mapped share of the reference grid, and the time of :func:`registration_maps`.
-Methods: ``poses`` (default: the reference range averaged over 9 x 9 pixels of one surface),
-``poses raw`` (``smooth=1``: the error the 0.9 mm depth noise of the reference point induces),
-``homography`` (SIFT, the whole image) and, for specimens, ``homography roi`` (reference
-keypoints on the campaign's specimen roi only).
+Table 1, per item and method: median error (pixels) per non-reference view over all mapped pixels, and over the
+specimen top faces (truth ``label`` >= 0: the surface that is classified), the mapped share of the reference grid,
+and the time of :func:`registration_maps`. Methods: ``poses`` (default: the reference range averaged over 9 x 9
+pixels of one surface), ``poses raw`` (``smooth=1``: the error the 0.9 mm depth noise of the reference point
+induces), ``homography`` (SIFT, the whole image) and, for specimens, ``homography roi`` (reference keypoints on the
+campaign's specimen roi only).
 
-Table 2, the keypoint detectors of the homography method on every item: keypoints per view,
-matches after the ratio test and homography inliers (means over non-reference views), inlier
-reprojection rms, median error (all mapped pixels / specimen tops) and time per item.
-Detectors the installed OpenCV lacks are listed as such (OpenCV 5 moved AKAZE to
-opencv-contrib; to measure it, put opencv-contrib-python-headless first on PYTHONPATH).
+Table 2, the keypoint detectors of the homography method on every item: keypoints per view, matches after the ratio
+test and homography inliers (means over non-reference views), inlier reprojection rms, median error (all mapped
+pixels / specimen tops) and time per item. Detectors the installed OpenCV lacks are listed as such (OpenCV 5 moved
+AKAZE to opencv-contrib; to measure it, put opencv-contrib-python-headless first on PYTHONPATH).
 
-Table 3, runtime per item: maps by each method and :func:`register` of two (view, y, x)
-float32 images (stand-ins for reflectance and AOI).
-
-Table 4, the poses method's ``smooth`` window (the default is chosen on it): median and 99th
-percentile of the error over all items and non-reference views. A wider window averages more
-depth noise away (the median falls) but bends the range near depth steps (the tail grows).
+Table 3, runtime per item: maps by each method and :func:`register` of two (view, y, x) float32 images (stand-ins
+for reflectance and AOI). Table 4, the poses method's ``smooth`` window (the default is chosen on it): median and
+99th percentile of the error over all items and non-reference views. A wider window averages more depth noise away
+(the median falls) but bends the range near depth steps (the tail grows).
 """
 
 from __future__ import annotations
@@ -59,7 +54,7 @@ def load(campaign: Path, truth: Path):
 
 
 def timed_maps(ingest, **kwargs):
-    """(maps, seconds) or (the RegistrationError, seconds)."""
+    """Return (maps, seconds) of :func:`registration_maps`, or (the RegistrationError, seconds) when it fails."""
     start = time.perf_counter()
     try:
         maps = registration_maps(ingest, **kwargs)
@@ -69,8 +64,16 @@ def timed_maps(ingest, **kwargs):
 
 
 def errors(maps, truth):
-    """Median error per non-reference view over all mapped pixels and over specimen tops,
-    the error (view, y, x) of those views and the specimen-top mask (y, x).
+    """Return the registration error of a map's non-reference views against the truth.
+
+    Returns
+    -------
+    whole, top : (view,) ndarray
+        Median error per non-reference view over all mapped pixels and over specimen tops.
+    error : DataArray (view, y, x)
+        The error of those views.
+    on_top : DataArray (y, x)
+        The specimen-top mask.
     """
     error = registration_error(maps, truth["u_ref"], truth["v_ref"]).isel(view=slice(1, None))
     top = truth["label"].sel(y=maps["y"], x=maps["x"]) >= 0
@@ -78,10 +81,12 @@ def errors(maps, truth):
 
 
 def fmt(values) -> str:
+    """Join the values with ``/``, two decimals each."""
     return "/".join(f"{value:.2f}" for value in values)
 
 
 def accuracy_table(items) -> None:
+    """Print Table 1: each item's error, mapped share and time per method, then the pooled medians."""
     print("Table 1: median registration error per non-reference view (pixels), paper preset")
     print(f"{'item':5} {'method':15} {'all mapped pixels':>26} {'specimen tops':>26} {'mapped':>7} {'time s':>7}")
     pooled = {}
@@ -121,11 +126,13 @@ DETECTOR_COLUMNS = {  # statistic: (header, format)
 
 
 def detector_row(detector: str, name: str, stats: dict) -> str:
+    """Format one row of Table 2: a detector's statistics (:data:`DETECTOR_COLUMNS`) on one item."""
     cells = (f"{stats[key]:{spec}}" for key, (_, spec) in DETECTOR_COLUMNS.items())
     return f"{detector:8} {name:5} " + " ".join(cells)
 
 
 def detector_table(items) -> None:
+    """Print Table 2: each keypoint detector of the homography method on every item, and its means."""
     print("\nTable 2: detectors of the homography method (means over the non-reference views)")
     header = (f"{title:>{spec.split('.')[0]}}" for title, spec in DETECTOR_COLUMNS.values())
     print(f"{'detector':8} {'item':5} " + " ".join(header))
@@ -149,6 +156,7 @@ def detector_table(items) -> None:
 
 
 def runtime_table(items, repeat: int) -> None:
+    """Print Table 3: per item, the best of ``repeat`` times of the maps by each method and of :func:`register`."""
     print(f"\nTable 3: runtime per item (best of {repeat}), seconds")
     print(f"{'item':5} {'views':>5} {'grid':>9} {'maps poses':>10} {'maps homography':>15} {'register':>9}")
     for name, ingest, _, _ in items:
@@ -169,6 +177,7 @@ def runtime_table(items, repeat: int) -> None:
 
 
 def smoothing_table(items, windows=(1, 3, 5, 7, 9, 11, 15)) -> None:
+    """Print Table 4: the poses method's error and time per ``smooth`` window, over all items."""
     print("\nTable 4: poses method, reference range averaged over a window (all items, non-reference views)")
     print(f"{'smooth':>6} {'median px':>9} {'p99 px':>7} {'time s':>7}")
     for window in windows:
@@ -183,6 +192,7 @@ def smoothing_table(items, windows=(1, 3, 5, 7, 9, 11, 15)) -> None:
 
 
 def main() -> None:
+    """Parse the command line, render a campaign unless one is given, and print the four tables."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--campaign", type=Path, help="a rendered paper campaign (default: render one)")
     parser.add_argument("--truth", type=Path, help="its truth folder (default: <campaign>-truth)")

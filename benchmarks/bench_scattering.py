@@ -31,6 +31,7 @@ def data(npix, nview=5, seed=0):
 
 
 def median_time(func, repeat):
+    """Return the median seconds of ``repeat`` calls of ``func``."""
     times = []
     for _ in range(repeat):
         start = time.perf_counter()
@@ -40,10 +41,12 @@ def median_time(func, repeat):
 
 
 def model(theta, r0, n):
+    """Evaluate R0 cos((2 - 1/n) theta)^n: the scattering model as the references fit it."""
     return r0 * np.cos((2 - 1 / n) * theta) ** n
 
 
 def scipy_loop(r, theta):
+    """Fit every pixel by its own scipy ``curve_fit`` call, skipping the fits that fail."""
     for ri, ti in zip(r, theta):
         try:
             curve_fit(model, ti, ri, p0=(ri.max(), 1.0))
@@ -52,11 +55,13 @@ def scipy_loop(r, theta):
 
 
 def as_cube(a, side):
+    """Reshape (pixel, view) data into a (view, y, x) DataArray of ``side`` rows."""
     npix, nview = a.shape
     return xr.DataArray(a.T.reshape(nview, side, npix // side), dims=("view", "y", "x"))
 
 
 def main():
+    """Parse the command line, time every method on the same data and print the rates."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pixels", type=int, default=320 * 480)
     parser.add_argument("--sample", type=int, default=2000, help="pixels fitted by the slow references")

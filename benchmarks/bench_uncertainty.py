@@ -58,6 +58,7 @@ def propagated(feats: xr.Dataset, inflation: float) -> xr.Dataset:
 
 
 def row(label: str, result: dict) -> str:
+    """Format one table row: per parameter, the shares within 1 and 2 uncertainties and the error scale."""
     cells = "".join(
         f"{result[name]['within_1']:10.3f}{result[name]['within_2']:10.3f}{result[name]['z_scale']:10.2f}"
         for name in UNCERTAINTY
@@ -66,6 +67,7 @@ def row(label: str, result: dict) -> str:
 
 
 def main():
+    """Parse the command line, process the paper campaign and print the coverage and accuracy tables."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--campaign", type=Path, help="a rendered paper campaign (truth in <campaign>-truth)")
     args = parser.parse_args()
@@ -122,7 +124,8 @@ def main():
                     for v in ("label", "label_filtered")
                 ]
                 print(
-                    f"  {label:40s} {accuracy[0]:.4f} raw, {accuracy[1]:.4f} filtered; {labels['label'].attrs['unclassified']}"
+                    f"  {label:40s} {accuracy[0]:.4f} raw, {accuracy[1]:.4f} filtered; "
+                    f"{labels['label'].attrs['unclassified']}"
                 )
 
 

@@ -1,30 +1,27 @@
 """Accuracy on the validation campaigns, against their truth and against a true-geometry ceiling.
 
-Run by hand: ``python benchmarks/bench_validation.py [--campaigns NAME ...] [--seeds 0 1 2]
-[--workdir DIR] [--config config/config.yaml] [--set SECTION.KEY=VALUE ...]``.
+Run by hand: ``python benchmarks/bench_validation.py [--campaigns NAME ...] [--seeds 0 1 2] [--workdir DIR]
+[--config config/config.yaml] [--set SECTION.KEY=VALUE ...]``.
 
-Each validation campaign (:data:`surffin.simulate.validation.VALIDATION`; ``paper``
-and ``tiny`` too) is rendered at each seed into ``--workdir`` (kept, and reused by
-later runs) and evaluated in this process with the workflow's parameters
-(:func:`surffin.analysis.evaluation.evaluate_campaign`). Printed per campaign and seed, then
-the mean and the range over the seeds:
+Each validation campaign (:data:`surffin.simulate.validation.VALIDATION`; ``paper`` and ``tiny`` too) is
+rendered at each seed into ``--workdir`` (kept, and reused by later runs) and evaluated in this process with the
+workflow's parameters (:func:`surffin.analysis.evaluation.evaluate_campaign`). Printed per campaign and seed,
+then the mean and the range over the seeds:
 
 - ``cal %``: median relative error of the fitted ``k f(d, theta)`` over the crop;
-- ``R0 %``, ``n %``: median relative error of the smoothed features on the specimen
-  interiors of every item; ``ceil R0``, ``ceil n``: the same for a fit of the same
-  data with the true AOI and instrument function (what the data allow);
+- ``R0 %``, ``n %``: median relative error of the smoothed features on the specimen interiors of every item;
+  ``ceil R0``, ``ceil n``: the same for a fit of the same data with the true AOI and instrument function (what
+  the data allow);
 - ``missing``: the largest share of an item's interior without features, %;
-- ``label``, ``filtered``: the worst scene's accuracy (%) before and after the label
-  filter, unclassified pixels counting as wrong; ``unclass``: the largest share of a
-  scene's scored pixels left unclassified, %; ``ceiling``: the worst scene's accuracy
-  of 1-NN on the ceiling's features, after the filter;
+- ``label``, ``filtered``: the worst scene's accuracy (%) before and after the label filter, unclassified pixels
+  counting as wrong; ``unclass``: the largest share of a scene's scored pixels left unclassified, %;
+  ``ceiling``: the worst scene's accuracy of 1-NN on the ceiling's features, after the filter;
 - ``board rej``: the smallest share of a scene's board pixels left unclassified, %.
 
-Then the risk-coverage table: the scenes' scored pixels ranked by the class model's
-posterior of their k-NN class, and the error rate (%) among the classified ones when
-only the most confident share is classified (100 % = no reject option); and the
-posterior's calibration: per posterior bin, the error the posterior predicts (mean
-of 1 - posterior) beside the error observed.
+Then the risk-coverage table: the scenes' scored pixels ranked by the class model's posterior of their k-NN
+class, and the error rate (%) among the classified ones when only the most confident share is classified
+(100 % = no reject option); and the posterior's calibration: per posterior bin, the error the posterior predicts
+(mean of 1 - posterior) beside the error observed.
 """
 
 from __future__ import annotations
@@ -59,7 +56,7 @@ def campaigns() -> dict:
 
 
 def render(name: str, seed: int, workdir: Path) -> Path:
-    """The campaign ``name`` at ``seed`` under ``workdir``, rendered unless already there."""
+    """Return the campaign ``name`` at ``seed`` under ``workdir``, rendering it unless it is already there."""
     directory = workdir / f"{name}-s{seed}"
     if not (directory / "campaign.yaml").exists():
         preset, fmt, units, poses = campaigns()[name]
@@ -101,10 +98,12 @@ def evaluate(directory: Path, config: dict) -> dict:
 
 
 def line(label: str, values: dict) -> str:
+    """Format one table line: ``label``, then the value of each of :data:`ROWS`."""
     return f"{label:26s}" + "".join(f"{values[key]:10.2f}" for key in ROWS)
 
 
 def main() -> None:
+    """Parse the command line, evaluate every campaign at every seed and print the tables."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--campaigns", nargs="+", default=None, help="default: every validation campaign")
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])

@@ -19,7 +19,8 @@ def _check(args: argparse.Namespace) -> int:
     print(f"  camera {camp.camera.width}x{camp.camera.height}, crop y={camp.crop.y} x={camp.crop.x}")
     if camp.calibration is not None:
         print(
-            f"  calibration: {len(camp.calibration.wall)} wall views, {len(camp.calibration.reference.views)} reference views"
+            f"  calibration: {len(camp.calibration.wall)} wall views, "
+            f"{len(camp.calibration.reference.views)} reference views"
         )
     for item in camp.items.values():
         label = f"class {item.cls}" if item.cls else "scene"
@@ -41,7 +42,7 @@ def _inspect(args: argparse.Namespace) -> int:
 
 
 def _whole_number(minimum: int):
-    """An argparse type: an integer of at least ``minimum``."""
+    """Return an argparse type: an integer of at least ``minimum``."""
 
     def parse(text: str) -> int:
         try:

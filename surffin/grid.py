@@ -34,7 +34,7 @@ class Roi:
         return self.y[1] - self.y[0], self.x[1] - self.x[0]
 
     def clip(self, other: Roi) -> Roi:
-        """The part of this roi inside ``other``.
+        """Return the part of this roi inside ``other``.
 
         Raises
         ------
@@ -49,11 +49,11 @@ class Roi:
 
     @classmethod
     def from_mapping(cls, roi: Mapping | Roi | None) -> Roi | None:
-        """A Roi from its ``{"y": [a, b], "x": [c, d]}`` form (a store's attrs, a job's parameters)."""
+        """Build a Roi from its ``{"y": [a, b], "x": [c, d]}`` form (a store's attrs, a job's parameters)."""
         if roi is None or isinstance(roi, Roi):
             return roi
         return cls(tuple(roi["y"]), tuple(roi["x"]))
 
     def as_mapping(self) -> dict[str, list[int]]:
-        """The ``{"y": [a, b], "x": [c, d]}`` form, for JSON and YAML."""
+        """Return the ``{"y": [a, b], "x": [c, d]}`` form, for JSON and YAML."""
         return {"y": list(self.y), "x": list(self.x)}

@@ -19,7 +19,6 @@ from pathlib import Path
 import pytest
 import xarray as xr
 
-
 REPO = Path(__file__).resolve().parents[1]
 TIMEOUT = 300
 #: The only names a killed write may leave beside a store: ``.<store>.partial-<token>``.

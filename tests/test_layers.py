@@ -338,11 +338,14 @@ def test_the_layer_check_sees_every_form_of_import(tmp_path):
             "surffin/method/calibration.py": "",
             "surffin/simulate/scene.py": "",
             "surffin/simulate/sample.py": (
-                "import numpy\nfrom surffin.method import calibration\nfrom ..method.scattering import scattering_model\n"
+                "import numpy\nfrom surffin.method import calibration\n"
+                "from ..method.scattering import scattering_model\n"
                 "from .scene import render\ndef f():\n    import surffin.method.geometry as g\n"
                 "if False:\n    from surffin.method.stages import process_item\n"
             ),
-            "surffin/grid.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from surffin.io.campaign import Campaign\n",
+            "surffin/grid.py": (
+                "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from surffin.io.campaign import Campaign\n"
+            ),
             "surffin/io/campaign.py": "",
             "surffin/analysis/diagnostics.py": "def plot():\n    from surffin.report import figures\n",
             "surffin/report/figures.py": "from surffin.pipeline.jobs import logging_to\n",
@@ -372,9 +375,12 @@ def test_the_private_check_sees_imports_and_attributes(tmp_path):
         tmp_path,
         {
             "surffin/method/features.py": "_helper = 1\nvalue = _helper\n",
-            "surffin/method/classify.py": "from surffin.method.features import _helper, value\nfrom .features import _helper as h\n",
+            "surffin/method/classify.py": (
+                "from surffin.method.features import _helper, value\nfrom .features import _helper as h\n"
+            ),
             "surffin/method/stages.py": (
-                "import surffin.method.features\nimport surffin.method.features as f\nfrom surffin.method import features\n"
+                "import surffin.method.features\nimport surffin.method.features as f\n"
+                "from surffin.method import features\n"
                 "a = f._helper\nb = features._helper\nc = surffin.method.features._helper\nd = f.__name__\n"
             ),
         },

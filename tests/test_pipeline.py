@@ -1,5 +1,6 @@
 """The entry points: the stage table's jobs write what the in-memory chain computes; jobs sharing a process."""
 
+import dataclasses
 import logging
 import math
 import subprocess
@@ -16,8 +17,11 @@ import surffin
 from surffin.method.features import variability
 from surffin.method.stages import ITEM_CHAIN, aoi_stage, process_item
 from surffin.pipeline.jobs import dask_scheduler, logging_to
+from surffin.pipeline.parameters import read_config
 from surffin.pipeline.run import run_calibration, run_ingest, run_stage
-from surffin.pipeline.table import STAGES
+from surffin.pipeline.table import STAGES, input_paths
+from surffin.pipeline.workflow import Plan
+from surffin.simulate.presets import PRESETS
 
 CHUNKS = {"y": 32, "x": 32}
 PARAMS = {"window": 9, "size": 5, "variability_size": 7, "min_views": 2, "min_spread": math.radians(10)}
@@ -136,3 +140,42 @@ def test_local_schedulers_never_import_dask_distributed():
     )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert run.stdout.split() == ["4096", "False"]
+
+
+def test_the_plan_names_each_job_s_files_from_the_table(tiny_campaign, tmp_path):
+    config = {**read_config(), "campaign": str(tiny_campaign), "processed": str(tmp_path / "out")}
+    plan = Plan.read(tiny_campaign, config)
+    camp = plan.campaign
+    assert plan.output("registration", "S1") == f"{tmp_path}/out/registered/S1.zarr"
+    assert input_paths("features", config["processed"], "cal.zarr") == {
+        name: f"{tmp_path}/out/{name}/{{item}}.zarr" for name in ("registered", "reflectance", "aoi")
+    }
+    assert input_paths("reflectance", config["processed"], "cal.zarr")["calibration"] == "cal.zarr"
+    results = plan.results()
+    assert [path for path in results if "/features/" in path] == [plan.output("features", n) for n in camp.items]
+    assert plan.output("summary") in results and plan.output("labels", "T1") in results
+    assert plan.item_views("S2") == [str(path) for path in camp.items["S2"].views]
+    assert plan.registration_parameters("S1")["roi"] == camp.items["S1"].roi.as_mapping()
+    assert plan.repeat is not None  # the tiny preset renders a repeat calibration set
+    assert plan.specimens_by_roughness()[0] == min(
+        camp.specimens, key=lambda name: camp.specimens[name].roughness_mm or float("inf")
+    )
+    without = Plan.read(tiny_campaign, {**config, "calibration_repeat": None})
+    assert without.repeat is None
+
+
+def test_the_plan_refuses_a_calibration_of_another_camera(tiny_campaign, tmp_path):
+    other = tmp_path / "other"
+    surffin.simulate_campaign(
+        other,
+        preset=dataclasses.replace(
+            PRESETS["tiny"],
+            crop=None,
+            camera=dataclasses.replace(PRESETS["tiny"].camera, width=PRESETS["tiny"].camera.width + 8),
+        ),
+        seed=0,
+    )
+    calibration = run_calibration(other, tmp_path / "other.zarr")
+    config = {**read_config(), "calibration_store": str(calibration)}
+    with pytest.raises(surffin.StoreError, match="sensor"):
+        Plan.read(tiny_campaign, config)

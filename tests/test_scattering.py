@@ -104,8 +104,7 @@ def cube(ny=23, nx=31, nview=5):
     r[::7, 1] = np.nan
     dims = ("view", "y", "x")
     coords = {"view": [f"v{i}" for i in range(nview)], "y": np.arange(ny), "x": np.arange(nx)}
-    as_cube = lambda a: xr.DataArray(a.T.reshape(nview, ny, nx), dims=dims, coords=coords)
-    return as_cube(r), as_cube(theta)
+    return tuple(xr.DataArray(a.T.reshape(nview, ny, nx), dims=dims, coords=coords) for a in (r, theta))
 
 
 def test_dask_equals_numpy_with_uneven_chunks():

@@ -1,1 +1,4 @@
-"""Analyses of the method's results: diagnostics, sensitivity, uncertainty, evaluation against truth, the paper comparison."""
+"""Analyses of the method's results.
+
+Diagnostics, sensitivity, uncertainty, evaluation against truth, the paper comparison.
+"""

@@ -1,55 +1,28 @@
 """Calibration diagnostics as the paper reports them (section 3.3, Table 2), and repeatability.
 
-From a calibration store (:func:`surffin.method.calibration.calibrate`), over the
-campaign's crop (the pixels the method uses):
+From a calibration store (:func:`surffin.method.calibration.calibrate`), over the campaign's crop, beside the
+paper's numbers (:data:`surffin.paper.CALIBRATION`) and the truth's own (``<campaign>-truth/instrument.zarr``):
 
-- fit quality: mean R^2 over the fitted pixels (paper 0.98);
-- variability of each coefficient across the image, in %: ``100 std / |mean|``
-  (``plain``: the coefficient of variation, which is how the paper's
-  "variability in % over the whole image" reads) and ``100 * 1.4826 MAD /
-  |median|`` (``robust``: the same for a normal distribution, but blind to the
-  few pixels whose fit is poorly constrained, which inflate the plain one; the
-  two differ where such outliers matter). Paper: A 8.94, B 3.92, C 1.79,
-  D 1.38, E 4.44 %, in a gauge it does not state; here E = 1, so E's
-  variability is 0 and A, B, C, D carry E's;
-- the correlation matrix of the coefficients across pixels (Pearson, paper
-  Table 2; C-D -0.99). It mixes the true spatial patterns of the coefficients
-  with the fits' estimation errors, which are strongly correlated between C
-  and D;
-- the feature spread on the calibration wall: the calibrated reflectance of
-  every wall view, then R0, n fitted per sensor pixel over the wall views (the
-  wall is uniform and Lambertian, so one pixel sees one reflectance law in all
-  of them), and their standard deviation and robust spread across pixels
-  (paper: 0.005 and 0.008). Every wall set is analysed with every calibration,
-  and ``views_in_fit`` says how many of its views that calibration was fitted
-  to (from the file checksums the store records): on its own views a
-  calibration has absorbed their noise (in-sample, as in the paper), so the
-  spread is honest only on other views, e.g. the repeat set's.
+- fit quality: mean R^2 over the fitted pixels;
+- each coefficient's variability across the image, in %: ``plain``, ``100 std / |mean|`` (the coefficient of
+  variation: how the paper's "variability in % over the whole image" reads), and ``robust``,
+  ``100 * 1.4826 MAD / |median|`` (the same for a normal distribution, but blind to the few poorly constrained
+  pixels that inflate the plain one). The paper's gauge is not stated; E = 1 here and in the truth, so A..D carry E's;
+- the coefficients' Pearson correlation across pixels: it mixes their true spatial patterns with the fits'
+  estimation errors, which are strongly correlated between C and D (paper: C-D -0.99);
+- the feature spread on the wall: R0, n fitted per sensor pixel over the calibrated wall views (the wall is
+  uniform and Lambertian: one law per pixel), std and robust spread across pixels. Each wall set is analysed
+  with each calibration; ``views_in_fit`` (from the store's checksums) counts the views it was fitted to: on
+  those it has absorbed their noise (in-sample, as in the paper), so only other views give an honest spread.
 
-Repeatability, given a second calibration store fitted to a repeat acquisition
-of the same wall and panel: relative differences between the two of the
-coefficients, of the scale k, of the instrument function f and of the whole
-calibration k f over the observed (d, theta) range, of the reflectance and
-features R0, n of the wall views, and of the specimens' registered
-reflectance and features (each specimen processed with each calibration by
-:func:`surffin.method.stages.process_item`). Paper: coefficients within 1 %,
-reflectance 2.9 %, R0 0.5 %, n 1.4 %.
-
-A relative difference is ``(a - b) / ((a + b) / 2)`` per pixel (and view, or
-(d, theta) grid point), in %, except for the coefficients: ``(a - b) / |mean|``
-with the term's mean over the image (C and D come near zero on pixels where
-their estimation noise is large). Each is summarised by the median of its
-absolute value (the headline), its mean (the systematic part), its standard
-deviation and the 95th percentile of its absolute value: the paper does not
-say which statistic its numbers are.
-
-Given the simulator's instrument truth (``<campaign>-truth/instrument.zarr``,
-in the same gauge E = 1), each calibration is compared with it the same way,
-and the truth's own variability and correlation are reported beside.
-
-:func:`calibration_report` gathers all of it for a campaign; the figures are
-drawn by :mod:`surffin.report.diagnostics`, and the workflow's job is
-:func:`surffin.pipeline.analyses.run_calibration_diagnostics`.
+Repeatability, against a calibration of a repeat acquisition: relative differences of the coefficients, of k, f
+and k f over the observed (d, theta) range, and of the reflectance and R0, n of the wall views and specimens
+(each processed with each calibration by :func:`surffin.method.stages.process_item`); the truth is compared the
+same way. A relative difference is ``(a - b) / ((a + b) / 2)`` in %, but ``(a - b) / |mean|`` with the image
+mean for the coefficients (C and D come near zero where their noise is large). The paper does not say which
+statistic its numbers are: each is summarised by median |.| (headline), mean (systematic part), std and 95th
+percentile of |.|. :func:`calibration_report` gathers it all, :mod:`surffin.report.diagnostics` draws it, and
+:func:`surffin.pipeline.analyses.run_calibration_diagnostics` is the workflow's job.
 """
 
 from __future__ import annotations
@@ -121,7 +94,7 @@ def _plain(value):
 
 
 def _format(value: float | None) -> str:
-    """A number for the log (``n/a`` for None)."""
+    """Format a number for the log (``n/a`` for None)."""
     return "n/a" if value is None else f"{value:.4g}"
 
 
@@ -220,7 +193,7 @@ def relative_difference(a, b, scale: float | None = None) -> dict[str, float | i
 
 
 def coefficients(ds: xr.Dataset, region: Roi | None) -> np.ndarray:
-    """The coefficients A..E of a calibration's pixels, as a matrix.
+    """Return the coefficients A..E of a calibration's pixels, as a matrix.
 
     Parameters
     ----------
@@ -276,7 +249,7 @@ def coefficient_statistics(calibration: xr.Dataset, region: Roi | None = None) -
 
 
 def observed_grid(calibration: xr.Dataset) -> tuple[np.ndarray, np.ndarray]:
-    """A (distance, AOI) grid over the central 98 % of a calibration's wall observations (``wall_obs``).
+    """Return a (distance, AOI) grid over the central 98 % of a calibration's wall observations (``wall_obs``).
 
     Returns
     -------
@@ -352,7 +325,7 @@ def _truth_statistics(truth: xr.Dataset, region: Roi | None) -> dict:
 
 
 def _calibration_aoi(calibration: xr.Dataset, path) -> dict:
-    """The AOI parameters (window, jump, max_window) a calibration store was fitted with (its provenance)."""
+    """Return the AOI parameters (window, jump, max_window) a calibration store was fitted with (its provenance)."""
     parameters = calibration.attrs.get("surffin_parameters", {})
     missing = [key for key in ("window", "jump", "max_window") if key not in parameters]
     if missing:
@@ -456,7 +429,7 @@ def wall_features(
 
 
 def representative_specimens(campaign: Campaign) -> list[str]:
-    """The first specimen of each class, in campaign order: those the diagnostics reprocess.
+    """Return the first specimen of each class, in campaign order: those the diagnostics reprocess.
 
     One per class keeps the diagnostics' cost and memory independent of the
     number of specimens while still covering every class's range of features.
@@ -470,7 +443,7 @@ def representative_specimens(campaign: Campaign) -> list[str]:
 def process_specimens(
     campaign: Campaign, calibrations: Mapping[str, xr.Dataset], params: Mapping | None = None
 ) -> dict[str, dict[str, xr.Dataset]]:
-    """The :func:`representative_specimens` processed with each calibration, in memory.
+    """Process the :func:`representative_specimens` with each calibration, in memory.
 
     Uses :func:`surffin.method.stages.process_item`.
 
@@ -639,7 +612,7 @@ def calibration_report(
     item_params: Mapping | None = None,
     instrument_truth: str | os.PathLike | None = None,
 ) -> CalibrationReport:
-    """The calibration diagnostics of a campaign, in memory.
+    """Compute the calibration diagnostics of a campaign, in memory.
 
     The workflow's job, which checks the stores against the campaign's camera
     first and writes the JSON and the figures, is

@@ -58,7 +58,9 @@ _PRESET = {
     "n": "n = 1.30 - 2.4 roughness_mm",
     "R0": "R0 = 0.80, 0.86, 0.92, 0.81 for S1..S4",
     "roughness": "roughness_mm of Table 4",
-    "variability": f"coef_variability = Table 2's ({', '.join(f'{value:g}' for value in VARIABILITY_PERCENT.values())} %)",
+    "variability": (
+        f"coef_variability = Table 2's ({', '.join(f'{value:g}' for value in VARIABILITY_PERCENT.values())} %)"
+    ),
     "correlation": (
         "coef_variability = Table 2's, coef_mean C < 0 < D; in the fit's gauge E = 1 (A E, B E, C/E, D/E) the "
         "true coefficients share E's variation, which makes them correlate with Table 2's signs and C-D near -1"
@@ -90,7 +92,7 @@ def _note(*parts: str) -> str:
 
 
 def _preset(*inputs: str) -> str:
-    """The note naming the ``paper`` preset's inputs (keys of ``_PRESET``) a row echoes."""
+    """Return the note naming the ``paper`` preset's inputs (keys of ``_PRESET``) a row echoes."""
     return "preset: " + ", ".join(_PRESET[name] for name in inputs)
 
 
@@ -228,7 +230,7 @@ def _read_table(path, delimiter: str = ",") -> list[dict]:
 
 
 def _number(text) -> float | None:
-    """A number of a CSV cell; None where it is empty (NaN written by pandas)."""
+    """Read a CSV cell as a number; None where it is empty (NaN written by pandas)."""
     return float(text) if text not in ("", None) else None
 
 
@@ -244,7 +246,8 @@ def _sensitivity_rows(slopes: Sequence[Mapping], separation: Sequence[Mapping]) 
                 "sensitivity/slopes.csv",
                 _SENSITIVITY,
                 _MEASURED,
-                f"linearised {_fmt(_number(row['predicted_slope']), 2)}; K >= 3 only: {_fmt(_number(row['slope_from_3']), 2)}",
+                f"linearised {_fmt(_number(row['predicted_slope']), 2)}; "
+                f"K >= 3 only: {_fmt(_number(row['slope_from_3']), 2)}",
             )
         )
     for row in separation:
@@ -275,7 +278,8 @@ def _feature_rows(summary: Mapping, specimens: Sequence[str]) -> list[dict]:
                 "features",
                 f"{name}: mean R0, n (relative std R0, n %)",
                 "see Fig. 14",
-                f"{_fmt(stats['R0']['mean'])}, {_fmt(stats['n']['mean'])} ({_fmt(spans['R0'], 2)}, {_fmt(spans['n'], 2)})",
+                f"{_fmt(stats['R0']['mean'])}, {_fmt(stats['n']['mean'])} "
+                f"({_fmt(spans['R0'], 2)}, {_fmt(spans['n'], 2)})",
                 "summary.json",
                 _MAIN,
                 _BUILT,
@@ -443,7 +447,7 @@ def comparison(
 
 
 def to_markdown(rows: Sequence[Mapping]) -> str:
-    """The rows as a Markdown table, one section after the other, with the legend of the origins."""
+    """Format the rows as a Markdown table, one section after the other, with the legend of the origins."""
     columns = ("section", "quantity", "paper", "surffin", "origin", "source", "note")
     cells = {"paper": _fmt, "surffin": _fmt, "source": lambda value: f"`{value}`"}
     lines = ["| " + " | ".join(columns) + " |", "| " + " | ".join("---" for _ in columns) + " |"]

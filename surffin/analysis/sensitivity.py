@@ -1,44 +1,28 @@
 """Sensitivity of the scattering fit to reflectance and AOI noise (paper section 4, Figs. 11 and 12).
 
-A Monte Carlo of surffin's own per-pixel fit (:func:`surffin.method.scattering.fit_scattering`,
-the code that runs on data): every draw of one configuration is one "pixel" of a
-single call. Truth R0 = 1, n = 1 (:data:`TRUTH`); the noise levels are the
-paper's Table 3 (:data:`NOISE_LEVELS`), each noise type applied alone:
+A Monte Carlo of surffin's own per-pixel fit (:func:`surffin.method.scattering.fit_scattering`, the code that runs
+on data): every draw of one configuration is one "pixel" of a single call. Truth R0 = 1, n = 1 (:data:`TRUTH`), so
+bias, std and rmse are also relative errors; the noise levels are the paper's Table 3 (:data:`NOISE_LEVELS`), each
+noise type applied alone:
 
-- ``reflectance``: additive Gaussian noise of standard deviation sigma on the
-  reflectance R (absolute, in reflectance units, the same at every AOI; the
-  paper calls them "absolute reflectance noise levels": the empirical standard
-  deviations of the calibrated reflectance). With R0 = 1 it is also the noise
-  relative to R0.
-- ``aoi``: Gaussian noise of standard deviation sigma (degrees) added to the AOI
-  given to the fit; the reflectance is generated from the true AOI. The model
-  is even in the AOI, so a noisy AOI below zero fits exactly as its absolute
-  value (the AOI estimator's arccos |v . n| is never negative).
+- ``reflectance``: additive Gaussian noise of standard deviation sigma on the reflectance R, absolute and the same
+  at every AOI (the paper's "absolute reflectance noise levels": the empirical standard deviations of the
+  calibrated reflectance); with R0 = 1 it is also the noise relative to R0.
+- ``aoi``: Gaussian noise of standard deviation sigma (degrees) on the AOI given to the fit, the reflectance made
+  from the true AOI. The model is even in the AOI, so a noisy AOI below zero fits as its absolute value (the AOI
+  estimator's arccos |v . n| is never negative).
 
-Two cases: ``separation``, two views, one at 45 deg and the other stepped from
-44 down to 0 deg (separation 1..45 deg); ``views``, K = 2..10 views equally
-spaced over 0..45 deg. The fits use ``min_spread=0``: the analysis covers the
-small separations that the workflow's default minimum AOI spread (10 deg)
-leaves unfitted.
+Two cases: ``separation``, two views, one at 45 deg and the other at 44 down to 0 deg (separation 1..45 deg);
+``views``, K = 2..10 views equally spaced over 0..45 deg. The fits use ``min_spread=0``, to cover the small
+separations that the workflow's default minimum AOI spread (10 deg) leaves unfitted.
 
-Seeding: the draws of a configuration come from
-``numpy.random.default_rng([seed, case, noise, level, abscissa])`` with the
-indices of :data:`CASES`, :data:`NOISE_LEVELS` and its levels, and the
-separation (deg) or number of views as abscissa (:func:`configuration_rng`).
-Each configuration is therefore reproducible alone, whatever else is run, and a
-run with fewer draws uses the first draws of a longer one (the noise is drawn
-as one (draw, view) array, row by row).
-
-Statistics are over the draws whose fit succeeded (status 0); ``failed`` counts
-the others, here fits whose optimum lies at a bound of n (status 3; under
-reflectance noise the lower bound, so the successful fits of a configuration
-with failures are biased towards larger n and R0). With truth 1, bias, std and
-rmse are also relative errors.
-
-The linearised prediction is the covariance of the least-squares estimate at
-truth, with J the (view, 2) Jacobian of R with respect to (R0, n):
-``sigma_R^2 (J^T J)^-1`` for reflectance noise, and
-``(J^T J)^-1 J^T diag((dR/dtheta sigma_theta)^2) J (J^T J)^-1`` for AOI noise.
+Each configuration draws from its own generator (:func:`configuration_rng`, seeded by the run's seed and the
+configuration), so it is reproducible alone, whatever else is run, and a run with fewer draws uses the first draws
+of a longer one (the noise is one (draw, view) array, drawn row by row). Statistics are over the fits that
+succeeded (status 0); ``failed`` counts the others, whose optimum lies at a bound of n (status 3; under reflectance
+noise the lower bound, so the successful fits of a configuration with failures are biased towards larger n and
+R0). Beside them, the linearised prediction: the covariance of the least-squares estimate at the truth
+(:func:`linearised_covariance`: ``sigma_R^2 (J^T J)^-1``, J the Jacobian of R in (R0, n), or its AOI analogue).
 """
 
 from __future__ import annotations
@@ -138,7 +122,7 @@ def _check_point(theta, r0, n) -> np.ndarray:
 
 
 def jacobian(theta, r0: float = TRUTH["R0"], n: float = TRUTH["n"]) -> np.ndarray:
-    """Derivatives of R = R0 cos(a theta)^n, a = 2 - 1/n, with respect to (R0, n).
+    """Differentiate R = R0 cos(a theta)^n, a = 2 - 1/n, with respect to (R0, n).
 
     Parameters
     ----------
@@ -238,7 +222,7 @@ def _check_count(name: str, value, minimum: int) -> int:
 
 
 def configuration_rng(seed: int, case: str, noise: str, level: str, abscissa: int) -> np.random.Generator:
-    """The random generator of one configuration's draws.
+    """Return the random generator of one configuration's draws.
 
     Parameters
     ----------
@@ -363,7 +347,7 @@ _COLUMN_ATTRS = {
 
 
 def sensitivity_table(draws: int = DEFAULT_DRAWS, seed: int = 0) -> xr.Dataset:
-    """The Monte Carlo of both cases, both noise types and both levels, as a tidy table.
+    """Run the Monte Carlo of both cases, both noise types and both levels, as a tidy table.
 
     Parameters
     ----------
@@ -600,7 +584,7 @@ def _legend(ax, noise: str, frame: pd.DataFrame, styles: dict[str, dict], loc: s
 
 
 def _panels(table: xr.Dataset, case: str, abscissa: str, xlabel: str, styles: dict[str, dict], loc: str):
-    """A 2 x 2 figure (rows: noise types, columns: parameters) of one case's rows.
+    """Draw a 2 x 2 figure (rows: noise types, columns: parameters) of one case's rows.
 
     Returns the figure, the case's rows and, per panel, ``(ax, noise, parameter,
     {level: rows sorted by abscissa})``; the panels are labelled, titled by

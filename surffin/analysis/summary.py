@@ -33,7 +33,7 @@ def feature_statistics(ds: xr.Dataset) -> dict:
 
 
 def features_region(spec: Mapping) -> xr.Dataset:
-    """The features store of ``{"store", "roi"}``, lazily, cut to its roi when it has one."""
+    """Open the features store of ``{"store", "roi"}``, lazily, cut to its roi when it has one."""
     ds = open_store(spec["store"], stage="features")
     roi = Roi.from_mapping(spec["roi"])
     return ds if roi is None else select_roi(ds, roi)

@@ -42,7 +42,7 @@ NORMAL_COVERAGE = (math.erf(1 / math.sqrt(2)), math.erf(2 / math.sqrt(2)))
 
 
 def _on_grid(da: xr.DataArray, grid: xr.Dataset, what: str) -> np.ndarray:
-    """The values (y, x) of ``da`` at the sensor pixels of ``grid``."""
+    """Return the values (y, x) of ``da`` at the sensor pixels of ``grid``."""
     try:
         values = da.sel(y=grid["y"].values, x=grid["x"].values)
     except KeyError as exc:

@@ -395,7 +395,7 @@ def _mapping(value: Any, key: str) -> Mapping:
 
 
 def _record(schema: dict[str, _Key], build: Callable[..., Any] = dict) -> _Convert:
-    """Converter of a mapping with the keys of ``schema``; unknown keys are errors."""
+    """Make a converter of a mapping with the keys of ``schema``; unknown keys are errors."""
 
     def convert(value: Any, key: str) -> Any:
         mapping = _mapping(value, key)
@@ -416,7 +416,7 @@ def _record(schema: dict[str, _Key], build: Callable[..., Any] = dict) -> _Conve
 
 
 def _named(convert_entry: _Convert) -> _Convert:
-    """Converter of a mapping from item names to entries."""
+    """Make a converter of a mapping from item names to entries."""
 
     def convert(value: Any, key: str) -> dict[str, Any]:
         return {
@@ -436,7 +436,7 @@ def _is_number(value: Any) -> bool:
 
 
 def _number(accept: Callable[[float], bool], expected: str, *, integer: bool = False) -> _Convert:
-    """Converter of a finite number (an int if ``integer``, bool never) that ``accept`` allows."""
+    """Make a converter of a finite number (an int if ``integer``, bool never) that ``accept`` allows."""
 
     def convert(value: Any, key: str) -> int | float:
         if not ((_is_int(value) if integer else _is_number(value)) and accept(value)):
@@ -589,7 +589,7 @@ def _inside(root: Path, relative: str, key: str, *, folder: bool) -> Path:
 
 
 def _checked_truth(root: Path, relative: str, key: str, camera: Camera) -> Path:
-    """The truth file of a scene, read once to check it."""
+    """Return the truth file of a scene, read once to check it."""
     path = _inside(root, relative, key, folder=False)
     with _at_key(key):
         read_truth(path, width=camera.width, height=camera.height)
@@ -692,7 +692,7 @@ class _Builder:
         )
 
     def views(self, relative: str, key: str) -> tuple[Path, ...]:
-        """The view files of a folder, at least :data:`MIN_VIEWS`, each checked if asked."""
+        """List the view files of a folder, at least :data:`MIN_VIEWS`, each checked if asked."""
         folder = _inside(self.root, relative, key, folder=True)
         with _at_key(key):
             views = list_views(folder, exclude=self.truths.values())

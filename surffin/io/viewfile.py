@@ -142,7 +142,7 @@ class _Form(NamedTuple):
 
 
 def pose_sidecar_path(path: str | Path) -> Path:
-    """The sidecar pose file of a view file: ``<stem>.pose.txt`` beside it."""
+    """Return the sidecar pose file of a view file: ``<stem>.pose.txt`` beside it."""
     path = Path(path)
     return path.with_name(path.stem + POSE_SUFFIX)
 
@@ -340,7 +340,7 @@ def write_view(
 
 
 def list_views(folder: str | Path, *, exclude: Iterable[str | Path] = ()) -> list[Path]:
-    """The view files of a folder, in name order.
+    """List the view files of a folder, in name order.
 
     Parameters
     ----------
@@ -406,7 +406,7 @@ def _as_view_error(path: Path) -> Iterator[None]:
 
 
 def _inspect(path: Path, width: int, height: int) -> tuple[_Form, np.ndarray | None]:
-    """The form of a view file and its pose (file units), after the cheap checks."""
+    """Return the form of a view file and its pose (file units), after the cheap checks."""
     form = _FORMS.get(path.suffix)
     if form is None:
         raise ViewFileError(f"{path}: suffix {path.suffix!r} is not a view form; expected one of {VIEW_SUFFIXES}")
@@ -425,7 +425,7 @@ def _inspect(path: Path, width: int, height: int) -> tuple[_Form, np.ndarray | N
 
 
 def _pose_problem(pose: np.ndarray) -> str | None:
-    """What is wrong with a camera-to-world pose, or None if it is a rigid transform."""
+    """Say what is wrong with a camera-to-world pose, or return None if it is a rigid transform."""
     if pose.shape != (4, 4):
         return f"shape {pose.shape}, expected (4, 4)"
     if not np.isfinite(pose).all():

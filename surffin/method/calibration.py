@@ -9,48 +9,16 @@ intensities by cos(theta) (eq. 4): ``y = I / cos(theta)``. The two factors share
 one scale, fixed by the gauge E = 1. Calibrated reflectance is then
 ``R = I / (k f)`` (eq. 2), with k from views of a reference panel (eq. 6).
 
-Sufficient statistics. With ``u = [1, w]``, ``w = 1 / d^2``, ``v = [theta^2,
-theta, 1]`` and ``z = u (x) v``, the model is linear in the six products
-``m = vec([A, B]^T [C, D, E])``: ``f = m . z``, with ``m`` of rank one. The whole
-least-squares problem of a pixel therefore depends on its observations only
-through ``G = sum z z^T``, ``b = sum y z`` and ``sum y^2``. The entries of ``G``
-are moments ``sum w^a theta^c`` (a <= 2, c <= 4: 15 of them) and those of
-``b`` are ``sum y w^a theta^c`` (a <= 1, c <= 2: 6), so :class:`WallStatistics`
-keeps 22 float64 per pixel, accumulated view by view: memory and fit time do
-not depend on the number of views. ``N`` and ``sum y`` are the moments with
-a = c = 0.
-
-Fit (:func:`fit_calibration`), per pixel and batched over pixels:
-
-1. the unconstrained linear least squares ``m_hat = G^-1 b`` on the
-   Jacobi-scaled system; pixels whose scaled ``G`` is (nearly) singular, i.e.
-   whose views do not separate the effects of distance and angle, are rejected;
-2. a start of rank one with E = 1: the (C, D) of the leading singular pair of
-   the 2x3 matrix ``M_hat``, or the sensor's typical (C, D) (a fit of the
-   statistics pooled over all pixels) where that has the lower cost, each with
-   its exact (A, B) (a 2x2 solve in the metric of ``G``); with few or poorly
-   spread views ``m_hat`` is noisy and its projection alone may start in the
-   wrong valley;
-3. Gauss-Newton on ``p = (A, B, C, D)`` minimising
-   ``Q(p) = (m(p) - m_hat)^T G (m(p) - m_hat)``, which equals the sum of
-   squared residuals minus the constant ``SSR(m_hat)``; computing it from the
-   difference ``m - m_hat`` avoids the cancellation of
-   ``sum y^2 - 2 b^T m + m^T G m``. The 4x4 normal equations ``J^T G J``
-   (J = dm/dp, analytic) are solved with scaled columns (C and D are ~-0.99
-   correlated), a step is halved until the cost does not rise (beyond 1e-14
-   relative), and the iteration stops when the predicted cost decrease falls
-   below ``1e-12`` of the cost (or of a floor at 1e-24 of the signal energy,
-   for noise-free data).
-
-4. the angular factor smoothed over the sensor (``angular_smoothing``): C and
-   D of the fitted pixels are replaced by their Gaussian-weighted mean over the
-   neighbouring fitted pixels, and each pixel's (A, B) is refitted exactly for
-   them. Per pixel, C and D are ~-0.99 correlated and their estimates noisy
-   (on a 105-view paper campaign the fitted ``k f`` at 0.45 m is off by a median
-   1.0 % at 0 deg and 0.7 % at 40 deg), while the angular response of a camera
-   varies smoothly over its field of view (the paper's Table 2: C and D vary
-   by 1.8 % and 1.4 % over the image); smoothing takes it to 0.3 %
-   (``docs/performance.md``).
+The model is linear in the six products ``m = vec([A, B]^T [C, D, E])``, of rank
+one, so the least-squares problem of a pixel depends on its observations only
+through 22 moments, which :class:`WallStatistics` accumulates view by view: memory
+and fit time do not depend on the number of views. :func:`fit_calibration` solves
+the unconstrained linear problem, starts a rank-one fit from it (or from the
+sensor's typical angular shape), refines it by Gauss-Newton, then smooths the
+angular factor (C, D) over the sensor and refits (A, B) per pixel: per pixel, C
+and D are ~-0.99 correlated and their estimates noisy, while the angular response
+of a camera varies smoothly over its field of view (the paper's Table 2: C and D
+vary by 1.8 % and 1.4 % over the image). Measurements: ``docs/performance.md``.
 
 Pixels without a fit are NaN with a status code (:data:`CALIBRATION_STATUS`),
 never a number.
@@ -206,6 +174,17 @@ def _usable(intensity, distance, aoi, valid) -> tuple[np.ndarray, ...]:
 
 class WallStatistics:
     """Sufficient statistics of the calibration fit, accumulated view by view.
+
+    With ``u = [1, w]``, ``w = 1 / d^2``, ``v = [theta^2, theta, 1]`` and
+    ``z = u (x) v``, the model is linear in the six products
+    ``m = vec([A, B]^T [C, D, E])``: ``f = m . z``, with ``m`` of rank one. The
+    whole least-squares problem of a pixel therefore depends on its
+    observations only through ``G = sum z z^T``, ``b = sum y z`` and
+    ``sum y^2``. The entries of ``G`` are moments ``sum w^a theta^c`` (a <= 2,
+    c <= 4: 15 of them) and those of ``b`` are ``sum y w^a theta^c`` (a <= 1,
+    c <= 2: 6), so 22 float64 are kept per pixel, accumulated view by view:
+    memory and fit time do not depend on the number of views. ``N`` and
+    ``sum y`` are the moments with a = c = 0.
 
     Parameters
     ----------
@@ -375,7 +354,7 @@ def _start(m_hat: np.ndarray, G: np.ndarray, b: np.ndarray, shape: np.ndarray | 
 
     m_hat (6 free products) is noisier than the rank-one fit (4 parameters);
     the sensor's typical (C, D) is a safe second candidate because the angular
-    shape varies by a few % across the sensor (module docstring, step 2).
+    shape varies by a few % across the sensor (:func:`fit_calibration`, step 2).
     """
     p = _best_ab(_rank_one_shape(m_hat), G, b)
     if shape is None:
@@ -418,7 +397,7 @@ def _cost(p: np.ndarray, m_hat: np.ndarray, G: np.ndarray) -> tuple[np.ndarray, 
 
 
 def _gauss_newton(p, m_hat, G, floor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Minimise Q over p (4, n), in place (module docstring, step 3).
+    """Minimise Q over p (4, n), in place (:func:`fit_calibration`, step 3).
 
     Returns p, Q (n,) and a converged mask (n,): the predicted decrease of a
     Gauss-Newton step fell below ``_FTOL`` times the cost plus ``floor`` (n,).
@@ -557,6 +536,38 @@ def fit_calibration(
         not fitted; ``r2`` (y, x) float64, fit of ``I / cos(theta)``;
         ``n_obs`` (y, x) int32; ``status`` (y, x) int8, codes of
         :data:`CALIBRATION_STATUS` (CF ``flag_values``/``flag_meanings``).
+
+    Notes
+    -----
+    Per pixel and batched over pixels (``G``, ``b``: :class:`WallStatistics`):
+
+    1. the unconstrained linear least squares ``m_hat = G^-1 b`` on the
+       Jacobi-scaled system; pixels whose scaled ``G`` is (nearly) singular, i.e.
+       whose views do not separate the effects of distance and angle, are rejected;
+    2. a start of rank one with E = 1: the (C, D) of the leading singular pair of
+       the 2x3 matrix ``M_hat``, or the sensor's typical (C, D) (a fit of the
+       statistics pooled over all pixels) where that has the lower cost, each with
+       its exact (A, B) (a 2x2 solve in the metric of ``G``); with few or poorly
+       spread views ``m_hat`` is noisy and its projection alone may start in the
+       wrong valley;
+    3. Gauss-Newton on ``p = (A, B, C, D)`` minimising
+       ``Q(p) = (m(p) - m_hat)^T G (m(p) - m_hat)``, which equals the sum of
+       squared residuals minus the constant ``SSR(m_hat)``; computing it from the
+       difference ``m - m_hat`` avoids the cancellation of
+       ``sum y^2 - 2 b^T m + m^T G m``. The 4x4 normal equations ``J^T G J``
+       (J = dm/dp, analytic) are solved with scaled columns (C and D are ~-0.99
+       correlated), a step is halved until the cost does not rise (beyond 1e-14
+       relative), and the iteration stops when the predicted cost decrease falls
+       below ``1e-12`` of the cost (or of a floor at 1e-24 of the signal energy,
+       for noise-free data);
+    4. the angular factor smoothed over the sensor (``angular_smoothing``): C and
+       D of the fitted pixels are replaced by their Gaussian-weighted mean over the
+       neighbouring fitted pixels, and each pixel's (A, B) is refitted exactly for
+       them. Per pixel, C and D are ~-0.99 correlated and their estimates noisy,
+       while the angular response of a camera varies smoothly over its field of
+       view (the paper's Table 2: C and D vary by 1.8 % and 1.4 % over the image);
+       smoothing them lowers the error of the fitted ``k f``
+       (``docs/performance.md``).
     """
     if isinstance(min_obs, bool) or not isinstance(min_obs, int | np.integer) or min_obs < 4:
         raise ValueError(f"min_obs must be an integer >= 4 (the fit has 4 free parameters), got {min_obs!r}")
@@ -625,7 +636,7 @@ def fit_calibration(
 
 
 def reference_scale(coef: np.ndarray, views: Iterable[Observation], roi: Roi, reflectance: float) -> tuple[float, dict]:
-    """The scale k of eq. 6 from views of a reference panel of known reflectance.
+    """Compute the scale k of eq. 6 from views of a reference panel of known reflectance.
 
     On every panel pixel, ``I / (f(d, theta) cos(theta))`` is the panel's
     reflectance relative to the calibration wall (f is fitted to the wall's
@@ -786,7 +797,7 @@ class _WallSamples:
             self.image = (stem, median, values.reshape(3, *shape))
 
     def dataset(self, coef: np.ndarray, scale_k: float) -> xr.Dataset:
-        """The kept observations with their reflectance under the fitted calibration.
+        """Return the kept observations with their reflectance under the fitted calibration.
 
         Parameters
         ----------

@@ -20,12 +20,9 @@ these pixels by reason and ``unclassified_reason`` says which, per pixel.
 filter's class of the classified votes in their window; an unclassified pixel
 takes it only where most of its window is classified (an isolated abstention
 inside a region of one class), so unclassified regions (the board) stay so. The
-paper's median filter on class indices depends on the (arbitrary, here
-alphabetical) order of the classes: a window with 10 votes for class 0, 5 for
-class 1 and 10 for class 2 becomes class 1, the least frequent, because its
-index lies in the middle. ``kind="majority"`` (the most frequent label in the
-window) has no such dependence. Both count the votes of each class with one box filter per class,
-so their cost does not depend on the window size.
+paper's median filter on class indices depends on the (arbitrary) order of the
+classes, ``kind="majority"`` does not. Both count the votes of each class with
+one box filter per class, so their cost does not depend on the window size.
 """
 
 from __future__ import annotations
@@ -92,7 +89,7 @@ def _names(values) -> list[str]:
 
 
 def _standardised(samples: xr.Dataset) -> xr.Dataset:
-    """``samples`` with the standardisation, class list and item list of its samples."""
+    """Return ``samples`` with the standardisation, class list and item list of its samples."""
     values = samples["features"].values
     std = values.std(axis=0)
     std[std == 0] = 1.0
@@ -114,7 +111,7 @@ def _standardised(samples: xr.Dataset) -> xr.Dataset:
 
 
 def _variability_kind(sets: Mapping[str, xr.Dataset], what: str) -> int:
-    """The common :data:`NOISE_CORRECTED` of feature stores or training sets, or an error naming them."""
+    """Return the common :data:`NOISE_CORRECTED` of feature stores or training sets, or raise an error naming them."""
     kinds = {name: int(ds.attrs.get(NOISE_CORRECTED, 0)) for name, ds in sets.items()}
     if len(set(kinds.values())) > 1:
         raise SurffinError(
@@ -140,7 +137,7 @@ def _check_cap(max_per_class) -> int | None:
 
 
 def _pooled(parts: Sequence[xr.Dataset], max_per_class: int | None = None) -> xr.Dataset:
-    """Samples of several sets in one, at most ``max_per_class`` of each class, standardised."""
+    """Pool the samples of several sets in one, at most ``max_per_class`` of each class, standardised."""
     samples = xr.concat(parts, "sample", data_vars="all", coords="minimal", compat="override", join="exact")
     if max_per_class is not None:
         classes = np.asarray(_names(samples["class"].values))
@@ -475,7 +472,7 @@ def unclassified_counts(reason, where=None) -> dict[str, int]:
 
 
 def _neighbours(samples: np.ndarray, target: np.ndarray, k: int, n_jobs: int | None):
-    """A k-nearest-neighbour classifier of standardised features."""
+    """Fit a k-nearest-neighbour classifier of standardised features."""
     from sklearn.neighbors import KNeighborsClassifier
 
     return KNeighborsClassifier(n_neighbors=k, n_jobs=n_jobs).fit(samples, target)
@@ -488,7 +485,7 @@ def _chi2_quantile(probability: float, dof: int) -> float:
 
 
 def _filter_image(label: np.ndarray, size: int, kind: str) -> np.ndarray:
-    """Median or majority filter (H, W) int16 of a label image; -1 does not vote (module docstring).
+    """Median or majority filter (H, W) int16 of a label image; -1 does not vote (:func:`filter_labels`).
 
     An unclassified pixel takes the filter's class where more than half of its
     ``size x size`` window (pixels outside the image included) holds votes.
@@ -522,9 +519,12 @@ def filter_labels(label: xr.DataArray, *, kind: str = "median", size: int = 5) -
     kind : {"median", "majority"}
         ``"median"``: the paper's median of the class indices in the window
         (the lower median when the number of votes is even); it depends on the
-        order of the classes (module docstring). ``"majority"``: the most
-        frequent class in the window; on a tie the centre pixel keeps its
-        class if it is among the most frequent, else the smallest tied index.
+        (arbitrary, here alphabetical) order of the classes: a window with 10
+        votes for class 0, 5 for class 1 and 10 for class 2 becomes class 1,
+        the least frequent, because its index lies in the middle.
+        ``"majority"``: the most frequent class in the window, with no such
+        dependence; on a tie the centre pixel keeps its class if it is among
+        the most frequent, else the smallest tied index.
     size : int, default 5
         Odd side of the square window, pixels.
 
@@ -550,7 +550,7 @@ def filter_labels(label: xr.DataArray, *, kind: str = "median", size: int = 5) -
 
 
 def _on_label_grid(truth, label: xr.DataArray) -> np.ndarray:
-    """The truth labels (y, x) at the sensor pixels of ``label``."""
+    """Return the truth labels (y, x) at the sensor pixels of ``label``."""
     if isinstance(truth, xr.DataArray):
         try:
             return truth.sel(y=label["y"].values, x=label["x"].values).transpose("y", "x").values

@@ -1,92 +1,28 @@
 """Feature images of an item (method step 5): smoothed R0 and n, their uncertainties, the variability.
 
-All three features are neighbourhood operations on (y, x) images that ignore
-missing (NaN) pixels:
+All features are neighbourhood operations on (y, x) images that ignore missing
+(NaN) pixels and treat the image border like a hole:
 
-- :func:`smooth`: Gaussian smoothing by normalised convolution,
-  ``G * (v m) / G * m`` with ``m`` the mask of finite pixels. The paper uses a
-  "Gaussian filter of size 7 x 7" without a sigma; the kernel here is
-  ``size x size`` with OpenCV's rule for a size without a sigma (that of
-  ``cv2.getGaussianKernel(size, 0)``) ``sigma = 0.3 ((size - 1) / 2 - 1) + 0.8``,
-  1.4 px for 7 x 7, so that the kernel ends at about 2.1 sigma. Unlike
-  ``getGaussianKernel``, the weights are always the sampled Gaussian
-  (OpenCV substitutes fixed binomial-like tables for sizes up to 7). A pixel
-  keeps a value only if it was finite itself (holes are not filled) and the
-  finite pixels of its window carry at least ``min_weight`` of the kernel
-  mass; pixels outside the image carry none, so the borders are normalised
-  like the holes.
-- :func:`local_std`: standard deviation over the finite pixels of a
-  ``size x size`` box, from box sums of the count, ``v - c`` and
-  ``(v - c)^2``, in float64 and centred on the mean ``c`` of the image (of the
-  chunk, with its halo, under dask) so that the sum of squares does not
-  cancel: the relative error of the variance is about
-  ``1e-16 (mu - c)^2 / sigma^2`` with ``mu`` the window's mean. The default is
-  the unbiased variance (``ddof=1``): windows near holes and borders hold
-  fewer pixels, and the biased estimate would shrink with the count, making
-  the feature depend on the pattern of missing pixels.
+- :func:`smooth`: Gaussian smoothing by normalised convolution, the paper's
+  "Gaussian filter of size 7 x 7" with OpenCV's sigma for that size.
+- :func:`smooth_uncertainty`: the standard uncertainty of the smoothed R0 and n,
+  propagated from the fit's per-pixel uncertainties with the spatial correlation
+  of the fit's residuals: the errors of neighbouring pixels (AOI, registration,
+  calibration) are neither independent nor fully correlated (``docs/performance.md``).
+- :func:`local_std`: standard deviation over the finite pixels of a box, from
+  centred float64 box sums; unbiased by default, so that it does not depend on
+  the pattern of missing pixels.
 - :func:`variability`: :func:`local_std` of ``R / cos(theta)`` (Lambert
   correction) of one view on its own pixel grid. Resampling a view onto the
   reference grid averages neighbouring pixels and lowers their spread, so the
   variability is computed before the warp and warped afterwards (METHOD.md).
 
-Uncertainty of the smoothed R0 and n (:func:`smooth_uncertainty`). The
-smoothed value is ``sum w_i v_i / sum w_i`` over the finite pixels i of the
-window, and the fit gives each pixel a standard uncertainty s_i (``R0_sigma``,
-``n_sigma``: the fit covariance scaled by the residual variance). With
-independent errors the smoothed value's uncertainty would be
-``sqrt(sum w_i^2 s_i^2) / sum w_i``; with fully correlated errors it is
-``sum w_i s_i / sum w_i``. Neither holds: the AOI comes from overlapping
-plane-fit windows (15 x 15 px), registration interpolates, the calibration
-is spatially smooth. Between the two, with a correlation rho(d) of the errors
-of two pixels d apart, the variance is F times the independent one, with the
-variance inflation factor ``F = sum_ij w_i w_j rho(i - j) / sum_i w_i^2``
-(:func:`variance_inflation`; 1 for independent errors, 23.6 for fully
-correlated ones under the 7 x 7 kernel): the window holds
-``(sum w)^2 / (F sum w^2)`` effectively independent pixels. rho is measured on
-the item itself, as the spatial correlation of the fit's residuals pooled over
-the views (:func:`residual_correlation`): the residuals are the part of the
-per-view errors the fit does not absorb and share their spatial structure.
-The uncertainty is ``sqrt(F sum w_i^2 s_i^2) / sum w_i``, at most the fully
-correlated bound. The s_i^2 of a 5-view fit have only 3 degrees of freedom;
-the window pools them (a pixel fitted from 2 views, whose s_i is unknown,
-takes the window's mean variance) into about 37 degrees of freedom under the
-7 x 7 kernel, so the smoothed uncertainty covers nearly like a normal (exact
-variances would give 0.676 and 0.947 within 1 and 2). F is computed for the
-full kernel and used near holes and borders too.
-
-Measured on the paper preset (``benchmarks/bench_uncertainty.py``; errors
-against the truth smoothed the same way, pixels at least ``label_margin``
-from the edges of surfaces; shares within 1 and 2 uncertainties, 0.683 and
-0.954 when calibrated):
-
-========================  ===========================  ===========================
-propagation               R0 (S1..S4, T1)              n (S1..S4, T1)
-========================  ===========================  ===========================
-independent (F = 1)       0.30-0.37, 0.55-0.65         0.25-0.31, 0.46-0.57
-fully correlated bound    0.90-0.95, 0.99-1.00         0.82-0.90, 0.99
-residual correlation      0.69-0.77, 0.94-0.97         0.59-0.69, 0.89-0.94
-========================  ===========================  ===========================
-
-Independent errors understate the uncertainty 2.1-2.6x (R0) and 2.5-3.2x (n),
-the bound overstates it 1.4-2.1x; the residual correlation (F = 6.8-8.2,
-2.9-3.5 effective pixels of the 23.6 of the kernel) is within about 20 % of the
-measured errors (the spread of error / uncertainty is 0.80-0.97 for R0 and
-0.96-1.21 for n): the choice here. The correlation of the true errors gives
-F = 6.2-6.4 for R0 and 8.2-8.6 for n on the specimens; the residuals' one
-parameter-blind value lies between, so n is slightly understated. The
-per-pixel fit sigma itself is calibrated for its degrees of freedom: 0.58-0.60
-and 0.83-0.85 of the pixels lie within 1 and 2 sigma, against 0.59-0.60 and
-0.84 expected from Student's t with each pixel's m - 2 degrees of freedom
-(0.61 and 0.86 at 5 views, 0.50 and 0.70 at 3): below the normal's shares
-because s^2 is estimated from 1-3 residual degrees of freedom, not because it
-is wrong on average.
-
 Under dask every operation runs chunk by chunk with ``dask.array.map_overlap``:
-each chunk gets a halo of ``size // 2`` pixels from its neighbours and NaN
-outside the image, which the kernels treat exactly like the zero border they
-use on a whole image, so the result equals the numpy path for any chunking
-to rounding (a few ulp: OpenCV's vectorised and scalar loops round
-differently, and :func:`local_std` centres each chunk on its own mean).
+each chunk gets a halo of ``size // 2`` pixels from its neighbours and NaN outside
+the image, which the kernels treat exactly like the zero border they use on a
+whole image, so the result equals the numpy path for any chunking to rounding (a
+few ulp: OpenCV's vectorised and scalar loops round differently, and
+:func:`local_std` centres each chunk on its own mean).
 """
 
 from __future__ import annotations
@@ -135,7 +71,7 @@ _RESIDUAL_CLIP = 5.0
 
 
 def check_size(size) -> int:
-    """A window side checked: an odd positive integer.
+    """Check a window side: an odd positive integer.
 
     Parameters
     ----------
@@ -182,7 +118,7 @@ def check_grid(arr, name: str, dims=("y", "x")) -> None:
 
 
 def gaussian_sigma(size: int) -> float:
-    """Standard deviation, pixels, of the Gaussian kernel of side ``size`` (OpenCV's rule).
+    """Compute the standard deviation, pixels, of the Gaussian kernel of side ``size`` (OpenCV's rule).
 
     ``sigma = 0.3 ((size - 1) / 2 - 1) + 0.8``; 1.4 px for ``size = 7``.
     """
@@ -190,7 +126,7 @@ def gaussian_sigma(size: int) -> float:
 
 
 def _smoothing(size, sigma, min_weight=None) -> tuple[int, float, np.ndarray]:
-    """Checked window side, Gaussian sigma (default: :func:`gaussian_sigma`) and 1-D weights of a smoothing."""
+    """Return a smoothing's checked window side, Gaussian sigma (default: :func:`gaussian_sigma`) and 1-D weights."""
     size = check_size(size)
     sigma = gaussian_sigma(size) if sigma is None else float(sigma)
     if not sigma > 0:
@@ -213,7 +149,7 @@ def _correlate(image: np.ndarray, weights: np.ndarray) -> np.ndarray:
 
 
 def _smooth_image(image: np.ndarray, weights: np.ndarray, min_weight: float) -> np.ndarray:
-    """Normalised convolution (H, W) float64 of one image; NaN = missing (module docstring)."""
+    """Normalised convolution (H, W) float64 of one image; NaN = missing (:func:`smooth`)."""
     valid = np.isfinite(image)
     numerator = _correlate(np.where(valid, image, 0.0), weights)
     mass = _correlate(valid.astype(np.float64), weights)
@@ -225,7 +161,7 @@ def _smooth_image(image: np.ndarray, weights: np.ndarray, min_weight: float) -> 
 def _local_std_image(
     image: np.ndarray, noise: np.ndarray | None = None, *, size: int, ddof: int, min_count: int
 ) -> np.ndarray:
-    """Standard deviation (H, W) float64 over the finite pixels of each ``size x size`` box.
+    """Compute the standard deviation (H, W) float64 over the finite pixels of each ``size x size`` box.
 
     With ``noise`` (a variance image), the box's mean noise variance is taken
     out of the variance first; a pixel without a noise variance is missing.
@@ -343,6 +279,18 @@ def smooth(
 ) -> xr.DataArray:
     """NaN-aware Gaussian smoothing by normalised convolution.
 
+    ``G * (v m) / G * m`` with ``m`` the mask of finite pixels. The paper uses a
+    "Gaussian filter of size 7 x 7" without a sigma; the kernel here is
+    ``size x size`` with OpenCV's rule for a size without a sigma (that of
+    ``cv2.getGaussianKernel(size, 0)``, :func:`gaussian_sigma`), 1.4 px for
+    7 x 7, so that the kernel ends at about 2.1 sigma. Unlike
+    ``getGaussianKernel``, the weights are always the sampled Gaussian (OpenCV
+    substitutes fixed binomial-like tables for sizes up to 7). A pixel keeps a
+    value only if it was finite itself (holes are not filled) and the finite
+    pixels of its window carry at least ``min_weight`` of the kernel mass;
+    pixels outside the image carry none, so the borders are normalised like
+    the holes.
+
     Parameters
     ----------
     da : (..., y, x) DataArray
@@ -379,7 +327,10 @@ def smooth(
 def _uncertainty_image(
     value: np.ndarray, uncertainty: np.ndarray, weights: np.ndarray, min_weight: float, inflation: float
 ) -> np.ndarray:
-    """Standard uncertainty (H, W) float64 of the normalised convolution of ``value`` (module docstring)."""
+    """Compute the standard uncertainty (H, W) float64 of the normalised convolution of ``value``.
+
+    See :func:`smooth_uncertainty`.
+    """
     valid = np.isfinite(value)
     known = valid & np.isfinite(uncertainty)
     squares = weights * weights
@@ -416,7 +367,7 @@ def smooth_uncertainty(
     min_weight: float = DEFAULT_MIN_FRACTION,
     inflation: float = math.inf,
 ) -> xr.DataArray:
-    """Standard uncertainty of :func:`smooth` of ``da``, propagated from per-pixel uncertainties.
+    """Propagate per-pixel uncertainties to the standard uncertainty of :func:`smooth` of ``da``.
 
     Parameters
     ----------
@@ -441,6 +392,39 @@ def smooth_uncertainty(
         for those whose is not; NaN where :func:`smooth` is NaN or no pixel of
         the window has a known uncertainty. Attrs ``smoothing_size``,
         ``smoothing_sigma`` and ``inflation`` (when finite). Lazy on dask input.
+
+    Notes
+    -----
+    The smoothed value is ``sum w_i v_i / sum w_i`` over the finite pixels i of
+    the window, and the fit gives each pixel a standard uncertainty s_i
+    (``R0_sigma``, ``n_sigma``: the fit covariance scaled by the residual
+    variance). With independent errors the smoothed value's uncertainty would be
+    ``sqrt(sum w_i^2 s_i^2) / sum w_i``; with fully correlated errors it is
+    ``sum w_i s_i / sum w_i``. Neither holds: the AOI comes from overlapping
+    plane-fit windows (15 x 15 px), registration interpolates, the calibration
+    is spatially smooth. Between the two, with a correlation rho(d) of the
+    errors of two pixels d apart, the variance is F times the independent one
+    (:func:`variance_inflation`; 1 for independent errors, 23.6 for fully
+    correlated ones under the 7 x 7 kernel). :func:`features` measures rho on
+    the item itself, as the spatial correlation of the fit's residuals pooled
+    over the views (:func:`residual_correlation`): the residuals are the part
+    of the per-view errors the fit does not absorb and share their spatial
+    structure. The uncertainty is ``sqrt(F sum w_i^2 s_i^2) / sum w_i``, at most
+    the fully correlated bound. F is computed for the full kernel and used near
+    holes and borders too.
+
+    The s_i^2 of a 5-view fit have only 3 degrees of freedom (alone, s_i covers
+    like Student's t with its pixel's m - 2 degrees of freedom, m views, not
+    like a normal); the window pools them (a pixel fitted from 2 views, whose
+    s_i is unknown, takes the window's mean variance) into about 37 degrees of
+    freedom under the 7 x 7 kernel, so the smoothed uncertainty covers nearly
+    like a normal (exact variances would give 0.676 and 0.947 within 1 and 2).
+
+    On the paper preset the residual correlation comes closest to the measured
+    errors, where independent errors understate the uncertainty and the fully
+    correlated bound overstates it. The residuals give one F for R0 and n that
+    lies between those of their true errors, so n's uncertainty is slightly
+    understated (``docs/performance.md``).
     """
     size, sigma, weights = _smoothing(size, sigma, min_weight)
     if not inflation > 0:
@@ -604,6 +588,15 @@ def local_std(
 ) -> xr.DataArray:
     """NaN-aware standard deviation over the ``size x size`` box around each pixel.
 
+    Computed from box sums of the count, ``v - c`` and ``(v - c)^2``, in float64
+    and centred on the mean ``c`` of the image (of the chunk, with its halo,
+    under dask) so that the sum of squares does not cancel: the relative error
+    of the variance is about ``1e-16 (mu - c)^2 / sigma^2`` with ``mu`` the
+    window's mean. The default is the unbiased variance (``ddof=1``): windows
+    near holes and borders hold fewer pixels, and the biased estimate would
+    shrink with the count, making the feature depend on the pattern of missing
+    pixels.
+
     Parameters
     ----------
     da : (..., y, x) DataArray
@@ -662,7 +655,7 @@ def local_std(
 
 
 def select_roi(obj: xr.DataArray | xr.Dataset, roi: Roi) -> xr.DataArray | xr.Dataset:
-    """The pixels of ``obj`` inside ``roi``, selected by their sensor coordinates.
+    """Select the pixels of ``obj`` inside ``roi`` by their sensor coordinates.
 
     Parameters
     ----------
@@ -686,7 +679,7 @@ def select_roi(obj: xr.DataArray | xr.Dataset, roi: Roi) -> xr.DataArray | xr.Da
 
 
 def views_by_incidence(aoi: xr.DataArray, region: Roi | None = None) -> list:
-    """The views, from the one that sees the surface closest to normal incidence to the most oblique.
+    """Order the views from the one that sees the surface closest to normal incidence to the most oblique.
 
     Parameters
     ----------
@@ -808,7 +801,7 @@ def features(
     min_weight: float = DEFAULT_MIN_FRACTION,
     error_correlation: xr.DataArray | None = None,
 ) -> xr.Dataset:
-    """The classification features of an item on its reference grid, with their uncertainties.
+    """Compute the classification features of an item on its reference grid, with their uncertainties.
 
     Parameters
     ----------
@@ -822,7 +815,7 @@ def features(
     error_correlation : (lag_y, lag_x) DataArray, optional
         Spatial correlation of the fit's errors (:func:`residual_correlation`
         of the views the fit was made from), for the propagation of
-        ``R0_sigma`` and ``n_sigma`` (module docstring). Without it, or when it
+        ``R0_sigma`` and ``n_sigma`` (:func:`smooth_uncertainty`). Without it, or when it
         is NaN (no residuals), the uncertainties are the fully correlated bound.
 
     Returns

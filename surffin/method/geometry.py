@@ -9,22 +9,20 @@ regressors and no errors-in-variables bias (a PCA plane tilts away from the ray 
 range noise). The ten moments of (x', y', q) are box-summed (cv2.boxFilter, float64,
 centred on the frame's mean), so a window costs the same whatever its size.
 
-Depth discontinuities: two valid neighbours (or a pixel's two neighbours along a row,
-column or diagonal, which catches a band of mixed pixels) are on different surfaces when
-their log-depths differ by more than ``jump`` beyond what a surface at MAX_SLOPE_DEG
-(80 deg) from the plane normal to the ray gives over their angular spacing: the
-threshold follows the pixels' own ray spacing, not a focal length.
+Depth discontinuities: two valid neighbours (or a pixel's two neighbours along a row, column
+or diagonal, which catches a band of mixed pixels) are on different surfaces when their
+log-depths differ by more than ``jump`` beyond what a surface at MAX_SLOPE_DEG (80 deg) from
+the plane normal to the ray gives over their own ray spacing (no focal length enters).
 
 The support adapts to the surface. At the base level each eligible pixel (valid, not an
-edge) takes the plane of one of the 9 windows of ``window`` pixels that contain it
-(centred, or shifted by half a window), the first whose mean squared depth residual is
-at most twice the smallest: near an edge or a crease it keeps a window on its own face.
-Each further level pools the moments over 2 x 2 cells and repeats the choice with windows
-twice as large, up to ``max_window``; the larger plane replaces a pixel's while the chosen
-window is usable (no edge, half valid) and its residual stays within 1.5 times the
-smallest base residual around the pixel (the local depth noise): a larger window on the
-same planar surface averages more noise, one across a crease or a curved surface fits
-worse and is refused. Measurements: ``docs/performance.md``.
+edge) takes the plane of the first of the 9 windows of ``window`` pixels that contain it
+(centred, or shifted by half a window) whose mean squared depth residual is at most twice
+the smallest: near an edge or a crease it keeps a window on its own face. Each further level
+pools the moments over 2 x 2 cells and doubles the windows, up to ``max_window``: the larger
+plane replaces a pixel's while the chosen window is usable (no edge, half valid) and its
+residual stays within 1.5 times the smallest base residual around the pixel (the local depth
+noise). A larger window on one planar surface averages more noise away; across a crease or
+on a curved surface it fits worse and is refused. Measurements: ``docs/performance.md``.
 """
 
 from __future__ import annotations
@@ -138,7 +136,7 @@ def _box(image: np.ndarray, window: int, out: np.ndarray | None = None) -> np.nd
 
 
 def _centre(coordinates: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """A point (3,) amid the valid pixels' coordinates: the mean of a 1-in-64 sample, else of all, else 0."""
+    """Pick a point (3,) amid the valid pixels' coordinates: the mean of a 1-in-64 sample, else of all, else 0."""
     for step in (8, 1):
         sample = coordinates[:, ::step, ::step][:, valid[::step, ::step]]
         if sample.size:
@@ -172,7 +170,7 @@ def _moments(points: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def _pool(image: np.ndarray) -> np.ndarray:
-    """Sums over 2 x 2 blocks of the last two axes (odd sizes padded with zeros)."""
+    """Sum over 2 x 2 blocks of the last two axes (odd sizes padded with zeros)."""
     height, width = image.shape[-2:]
     if height % 2 or width % 2:
         image = np.pad(image, [(0, 0)] * (image.ndim - 2) + [(0, height % 2), (0, width % 2)])
@@ -198,7 +196,7 @@ def _upsample(cells: np.ndarray, level: int, shape: tuple[int, int]) -> np.ndarr
 
 
 def _choose_windows(residual: np.ndarray, eligible: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
-    """The window each pixel takes, among the 9 that contain it (module docstring).
+    """Choose the window each pixel takes, among the 9 that contain it (module docstring).
 
     Parameters
     ----------
@@ -321,7 +319,7 @@ def _points(xyz) -> tuple[np.ndarray, np.ndarray]:
 def _window_planes(
     points: np.ndarray, valid: np.ndarray, window: int, jump: float, min_fraction: float, max_window: int
 ) -> np.ndarray:
-    """The plane each pixel of one frame takes: its unit normal (3, H, W), unoriented, NaN where none.
+    """Find the plane each pixel of one frame takes: its unit normal (3, H, W), unoriented, NaN where none.
 
     The base level gives each eligible pixel the plane of one of the 9 windows
     of ``window`` pixels that contain it; each further level doubles the window
@@ -371,7 +369,7 @@ def plane_normals(
     min_fraction: float = _MIN_FRACTION,
     max_window: int | None = None,
 ) -> np.ndarray:
-    """Unit normals of the local least-squares planes of one organized frame.
+    """Compute the unit normals of the local least-squares planes of one organized frame.
 
     Parameters
     ----------

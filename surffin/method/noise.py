@@ -75,7 +75,7 @@ class NoiseStatistics:
         return self
 
     def dataset(self) -> xr.Dataset:
-        """The model: ``noise_variance`` (relative, NaN where a bin has too few samples) per ``noise_intensity``.
+        """Return the model: ``noise_variance`` (relative, NaN where a bin has too few samples) per ``noise_intensity``.
 
         ``noise_intensity`` is the bin's geometric centre (counts); ``noise_samples`` the residuals in it.
         """

@@ -1,10 +1,8 @@
 """Co-registration: every view of an item on the reference view's pixel grid (METHOD.md step 4).
 
-The mapping and the resampling are separate steps.
-
-:func:`registration_maps` finds, for every pixel of the reference grid (the
-item's cropped sensor grid), the sub-pixel sensor position ``(map_x, map_y)`` in
-each view where the same surface point is seen:
+The mapping and the resampling are separate steps. :func:`registration_maps` finds, for
+every pixel of the reference grid (the item's cropped sensor grid), the sub-pixel sensor
+position ``(map_x, map_y)`` in each view where the same surface point is seen:
 
 - ``"poses"``: the reference pixel's measured 3-D point goes to the world frame
   with the reference pose, into the other camera's frame with the inverse of its
@@ -279,7 +277,7 @@ def _pose_map(points, transform, intrinsics, view_points, columns, rows, toleran
 
 
 def _feature_image(intensity: np.ndarray, valid: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
-    """An 8-bit image of the surface texture and the mask where keypoints may lie.
+    """Make an 8-bit image of the surface texture and the mask where keypoints may lie.
 
     Distance, angle and instrument act on the intensity as smooth factors, so the
     log intensity minus its local mean, divided by its local standard deviation
@@ -360,7 +358,7 @@ def _fit_homography(src: np.ndarray, dst: np.ndarray, threshold: float) -> tuple
 
 
 def _sensor_indices(coord: xr.DataArray, name: str) -> np.ndarray:
-    """The values of a ``y``/``x`` coordinate, checked to be >= 2 contiguous sensor indices."""
+    """Return the values of a ``y``/``x`` coordinate, checked to be >= 2 contiguous sensor indices."""
     values = np.asarray(coord.values)
     if values.size < 2 or not np.array_equal(values, values[0] + np.arange(values.size)):
         raise ValueError(f"{name} must be >= 2 contiguous sensor indices (a crop of the sensor), got {values!r:.80}")
@@ -368,7 +366,7 @@ def _sensor_indices(coord: xr.DataArray, name: str) -> np.ndarray:
 
 
 def _options(method: str, options: Mapping, auto: bool) -> dict:
-    """The defaults of ``method`` updated by ``options``; unknown names raise TypeError."""
+    """Update the defaults of ``method`` by ``options``; unknown names raise TypeError."""
     defaults = HOMOGRAPHY_OPTIONS if method == "homography" else POSE_OPTIONS
     allowed = {**HOMOGRAPHY_OPTIONS, **POSE_OPTIONS} if auto else defaults
     unknown = sorted(set(options) - set(allowed))
@@ -416,7 +414,7 @@ def _identity(grid: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarr
 
 
 def _pose_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict):
-    """The poses method: a function of a view index giving (col, row, diagnostics)."""
+    """Build the poses method: a function of a view index giving (col, row, diagnostics)."""
     views = [str(view) for view in ingest["view"].values]
     poses = np.asarray(ingest["pose"].values, dtype=np.float64)
     _check_poses(poses, views, item)
@@ -450,7 +448,7 @@ def _roi_mask(roi: Mapping | None, grid, item: str) -> np.ndarray | None:
 
 
 def _homography_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict):
-    """The homography method: a function of a view index giving (col, row, diagnostics)."""
+    """Build the homography method: a function of a view index giving (col, row, diagnostics)."""
     views = [str(view) for view in ingest["view"].values]
     intensity = np.asarray(ingest["intensity"].values)
     valid = np.asarray(ingest["valid"].values, dtype=bool)

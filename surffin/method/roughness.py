@@ -63,7 +63,8 @@ def roughness_relation(
     """
     if set(mean_n) != set(roughness_mm):
         raise SurffinError(
-            f"roughness relation: specimens with n {sorted(mean_n)} differ from those with a roughness {sorted(roughness_mm)}"
+            f"roughness relation: specimens with n {sorted(mean_n)} "
+            f"differ from those with a roughness {sorted(roughness_mm)}"
         )
     names = sorted(mean_n)
     if len(names) < MIN_SPECIMENS:
@@ -120,7 +121,7 @@ def _loo_roughness(r: np.ndarray, n: np.ndarray, i: int) -> float | None:
 
 
 def roughness_map(n: xr.DataArray, relation: Mapping) -> xr.Dataset:
-    """Indicative roughness of every pixel from its smoothed n.
+    """Estimate the indicative roughness of every pixel from its smoothed n.
 
     Parameters
     ----------

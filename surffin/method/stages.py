@@ -103,7 +103,7 @@ def features_stage(
     min_views: int = 2,
     min_spread: float = DEFAULT_MIN_SPREAD,
 ) -> xr.Dataset:
-    """The per-pixel features R0, n (smoothed fit) and variability (method step 5).
+    """Compute the per-pixel features R0, n (smoothed fit) and variability (method step 5).
 
     The variability of a pixel comes from the most perpendicular view that
     sees it: the views are ranked by their median AOI over the item's roi
@@ -181,7 +181,7 @@ def labels_stage(
 
 
 def roughness_stage(features: xr.Dataset, *, relation: Mapping) -> xr.Dataset:
-    """Indicative roughness map of an item from its smoothed n (:mod:`surffin.method.roughness`)."""
+    """Map the indicative roughness of an item from its smoothed n (:mod:`surffin.method.roughness`)."""
     ds = roughness_map(features["n"], relation)
     ds.attrs = {**_item_attrs(features), **ds.attrs}
     return ds

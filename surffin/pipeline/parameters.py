@@ -31,7 +31,7 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config" / "config.yaml"
 
 
 def read_config(path: str | os.PathLike = DEFAULT_CONFIG) -> dict:
-    """The workflow configuration in ``path`` (safe YAML)."""
+    """Read the workflow configuration in ``path`` (safe YAML)."""
     with open(path, encoding="utf-8") as stream:
         return yaml.safe_load(stream)
 

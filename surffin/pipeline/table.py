@@ -84,7 +84,7 @@ CHAIN = ("ingest", *(step.name for step in ITEM_CHAIN))
 
 
 def stage_of(function: Callable) -> Stage:
-    """The stage whose function is ``function``.
+    """Return the stage whose function is ``function``.
 
     Raises
     ------
@@ -102,13 +102,13 @@ _STORE_STAGE = {"ingest": "ingest", "aoi": "aoi", "reflectance": "reflectance", 
 
 
 def output_path(stage: str, processed: str, name: str | None = None) -> str:
-    """A stage's output under the ``processed`` folder, for one item or scene (``{item}`` when None)."""
+    """Return a stage's output under the ``processed`` folder, for one item or scene (``{item}`` when None)."""
     pattern = f"{processed}/{STAGES[stage].output}"
     return pattern if name is None else pattern.format(item=name, scene=name)
 
 
 def input_paths(stage: str, processed: str, calibration: str) -> dict[str, str]:
-    """An item stage's input stores by argument name (with ``{item}``); ``calibration`` is its store."""
+    """Return an item stage's input stores by argument name (with ``{item}``); ``calibration`` is its store."""
     return {
         arg: calibration if arg == "calibration" else output_path(_STORE_STAGE[arg], processed)
         for arg in STAGES[stage].inputs

@@ -61,23 +61,26 @@ class Plan:
     # --- paths -------------------------------------------------------------------------------
 
     def output(self, stage: str, name: str | None = None) -> str:
-        """A stage's output under the processed folder, for one item or scene (``{item}`` when None)."""
+        """Return a stage's output under the processed folder, for one item or scene (``{item}`` when None)."""
         return output_path(stage, self.config["processed"], name)
 
     def outputs(self, stage: str, names) -> list[str]:
+        """Return a stage's outputs for the items or scenes ``names``."""
         return [self.output(stage, name) for name in names]
 
     # --- items -------------------------------------------------------------------------------
 
     def roi(self, name: str) -> dict | None:
+        """Return an item's roi as a mapping, or None when it has none."""
         roi = self.campaign.items[name].roi
         return None if roi is None else roi.as_mapping()
 
     def item_views(self, name: str) -> list[str]:
+        """Return an item's view files."""
         return [str(path) for path in self.campaign.items[name].views]
 
     def item_settings(self, name: str) -> dict:
-        """What campaign.yaml says about one item and the camera: a change reruns that item."""
+        """Return what campaign.yaml says about one item and the camera: a change reruns that item."""
         item, camera = self.campaign.items[name], self.campaign.camera
         return {
             "crop": self.campaign.crop.as_mapping(),
@@ -93,39 +96,50 @@ class Plan:
         }
 
     def registration_parameters(self, name: str) -> dict:
+        """Return an item's registration parameters: the configured method and the item's roi."""
         return {"method": self.config["registration"]["method"], "roi": self.roi(name)}
 
     def feature_parameters(self, name: str) -> dict:
+        """Return an item's feature parameters: its roi and the configured ones."""
         return {"roi": self.roi(name), **feature_parameters(self.config)}
 
     def features_of(self, names) -> dict[str, str]:
+        """Return the features store of each of the items ``names``, by name."""
         return {name: self.output("features", name) for name in names}
 
     def specimen_features(self) -> dict[str, str]:
+        """Return every specimen's features store, by name."""
         return self.features_of(self.campaign.specimens)
 
     def item_features(self) -> list[str]:
+        """Return every item's features store."""
         return self.outputs("features", self.campaign.items)
 
     def scene_labels(self) -> dict[str, str]:
+        """Return every scene's labels store, by name."""
         return {name: self.output("labels", name) for name in self.campaign.scenes}
 
     def scene_label_stores(self) -> list[str]:
+        """Return every scene's labels store."""
         return list(self.scene_labels().values())
 
     def truth_files(self) -> list[str]:
+        """Return the truth files of the scenes that have one."""
         return [spec["path"] for spec in self.scene_truth().values()]
 
     def specimen_settings(self) -> dict:
+        """Return each specimen's features store, class and roi, by name."""
         return {
             name: {"store": self.output("features", name), "class": item.cls, "roi": self.roi(name)}
             for name, item in self.campaign.specimens.items()
         }
 
     def summary_features(self) -> dict:
+        """Return each item's features store and roi, by name."""
         return {name: {"store": self.output("features", name), "roi": self.roi(name)} for name in self.campaign.items}
 
     def scene_truth(self) -> dict:
+        """Return the truth file and the sensor size of each scene that has a truth, by name."""
         camera = self.campaign.camera
         return {
             name: {"path": str(item.truth), "width": camera.width, "height": camera.height}
@@ -136,25 +150,28 @@ class Plan:
     # --- calibration and its diagnostics -----------------------------------------------------
 
     def calibration_views(self) -> list[str]:
+        """Return the calibration set's view files: the wall views, then the reference views."""
         cal = self.campaign.calibration
         return [str(path) for path in (*cal.wall, *cal.reference.views)]
 
     def calibration_settings(self) -> dict:
+        """Return the reference panel's reflectance and roi: a change reruns the calibration."""
         ref = self.campaign.calibration.reference
         return {"reflectance": ref.reflectance, "roi": ref.roi.as_mapping()}
 
     def repeat_views(self) -> list[str]:
+        """Return the repeat calibration set's view files: the wall views, then the reference views."""
         return [str(path) for path in (*self.repeat.wall, *self.repeat.reference.views)]
 
     def diagnostics_views(self) -> list[str]:
-        """The campaign's wall views and the views of the specimens the calibration diagnostics reprocess."""
+        """Return the campaign's wall views and the views of the specimens the calibration diagnostics reprocess."""
         camp = self.campaign
         wall = () if camp.calibration is None else camp.calibration.wall
         specimens = [camp.specimens[name] for name in representative_specimens(camp)]
         return [str(path) for path in (*wall, *(view for item in specimens for view in item.views))]
 
     def diagnostics_settings(self) -> dict:
-        """The crop and the specimens' rois and reference views: a change reruns the diagnostics."""
+        """Return the crop and the specimens' rois and reference views: a change reruns the diagnostics."""
         camp = self.campaign
         return {
             "crop": camp.crop.as_mapping(),
@@ -165,7 +182,7 @@ class Plan:
         }
 
     def diagnostics_item_parameters(self) -> dict:
-        """The registration, AOI and feature parameters the diagnostics process the specimens with."""
+        """Return the registration, AOI and feature parameters the diagnostics process the specimens with."""
         config = self.config
         return {"method": config["registration"]["method"], **aoi_parameters(config), **feature_parameters(config)}
 
@@ -173,12 +190,15 @@ class Plan:
 
     @cached_property
     def rough_specimens(self) -> list[str]:
+        """Specimens whose roughness is known, in campaign order."""
         return [name for name, item in self.campaign.specimens.items() if item.roughness_mm is not None]
 
     def roughness_features(self) -> dict[str, str]:
+        """Return the features store of every specimen whose roughness is known, by name."""
         return self.features_of(self.rough_specimens)
 
     def roughness_settings(self) -> dict:
+        """Return the features store, class, roi and roughness of each specimen whose roughness is known."""
         specimens = self.specimen_settings()
         return {
             name: {**specimens[name], "roughness_mm": self.campaign.items[name].roughness_mm}
@@ -186,7 +206,7 @@ class Plan:
         }
 
     def roughness_outputs(self) -> list[str]:
-        """The relation and the scenes' maps and figures, when enough specimens carry a roughness."""
+        """Return the relation and the scenes' maps and figures, when enough specimens carry a roughness."""
         if len(self.rough_specimens) < MIN_SPECIMENS:
             return []
         processed = self.config["processed"]
@@ -202,7 +222,7 @@ class Plan:
         return sorted(self.campaign.specimens, key=lambda name: (order[name] is None, order[name] or 0.0))
 
     def figure_items(self) -> list[str]:
-        """The items whose feature figure is drawn (config ``item_figures``)."""
+        """Return the items whose feature figure is drawn (config ``item_figures``)."""
         camp = self.campaign
         return {"all": list(camp.items), "scenes": list(camp.scenes), "none": []}[self.config["item_figures"]]
 

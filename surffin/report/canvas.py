@@ -23,7 +23,7 @@ DPI = 120
 
 
 def figure(width: float, height: float, layout: str | None = "constrained"):
-    """A new matplotlib Figure.
+    """Create a new matplotlib Figure.
 
     Parameters
     ----------
@@ -62,7 +62,7 @@ def save(fig, path: str | os.PathLike) -> Path:
 
 
 def colormap(name: str, bad: str = "0.8"):
-    """A copy of a matplotlib colormap that draws NaN (missing pixels) in another colour.
+    """Copy a matplotlib colormap to draw NaN (missing pixels) in another colour.
 
     Parameters
     ----------
@@ -102,7 +102,7 @@ def subsample(count: int, limit: int, seed: int = 0) -> np.ndarray:
 
 
 def message(path: str | os.PathLike, title: str, text: str) -> Path:
-    """A figure that says why it has no content (e.g. an input made by an older surffin), logged as a warning.
+    """Write a figure that says why it has no content (e.g. an input made by an older surffin); log it as a warning.
 
     Parameters
     ----------

@@ -112,7 +112,7 @@ def plot_repeatability(
     *,
     region: Roi | None = None,
 ) -> Path:
-    """The second calibration's estimates against the first's: coefficients A..D and the specimens' R0, n.
+    """Plot the second calibration's estimates against the first's: coefficients A..D and the specimens' R0, n.
 
     Parameters
     ----------

@@ -1,8 +1,7 @@
 """Figures and tables of a processed campaign, after the paper's.
 
-One function per figure, each taking opened stores (Datasets) or dicts and
-writing one image file (PNG unless the path names another format that
-matplotlib writes):
+One function per figure, each taking opened stores (Datasets) or dicts and writing one image file (PNG unless
+the path names another format that matplotlib writes):
 
 | function | paper | from |
 | --- | --- | --- |
@@ -15,15 +14,13 @@ matplotlib writes):
 | :func:`plot_labels` | Fig. 15 | a scene's labels and ingest stores |
 | :func:`accuracy_table` | section 5.2 | ``summary.json`` |
 
-Tables are pandas DataFrames; :func:`write_table` writes one as HTML or CSV.
-:func:`write_figures` opens the stores and writes the files a workflow rule asks
-for (its job: :func:`surffin.pipeline.analyses.run_figures`). Figures are drawn
-on the canvas of :mod:`surffin.report.canvas`: matplotlib Figures without
-pyplot, matplotlib imported only when a figure is drawn.
+Tables are pandas DataFrames; :func:`write_table` writes one as HTML or CSV. :func:`write_figures` opens the
+stores and writes the files a workflow rule asks for (its job: :func:`surffin.pipeline.analyses.run_figures`).
+Figures are drawn on the canvas of :mod:`surffin.report.canvas`: matplotlib Figures without pyplot, matplotlib
+imported only when a figure is drawn.
 
-Class colours are the same in every figure: the i-th class of the sorted class
-list (the label order of :mod:`surffin.method.classify`) takes the i-th colour of
-matplotlib's ``tab10`` cycle.
+Class colours are the same in every figure: the i-th class of the sorted class list (the label order of
+:mod:`surffin.method.classify`) takes the i-th colour of matplotlib's ``tab10`` cycle.
 """
 
 from __future__ import annotations
@@ -155,7 +152,7 @@ def _roi_box(ax, roi: Roi | None) -> None:
 
 
 def _polar_quadrant(ax, r_max: float) -> None:
-    """A polar axis from AOI 0 (up) to 90 deg (right), radius = reflectance."""
+    """Set a polar axis to run from AOI 0 (up) to 90 deg (right), radius = reflectance."""
     ax.set_theta_zero_location("N")
     ax.set_theta_direction(-1)
     ax.set_thetamin(0)
@@ -269,7 +266,7 @@ def plot_calibration_fit(calibration: xr.Dataset, path: str | os.PathLike) -> Pa
 
 
 def plot_r2_map(calibration: xr.Dataset, path: str | os.PathLike) -> Path:
-    """The calibration's coefficient of determination per pixel, with the sample pixels of Fig. 9.
+    """Draw the calibration's coefficient of determination per pixel, with the sample pixels of Fig. 9.
 
     Parameters
     ----------
@@ -577,7 +574,7 @@ def plot_feature_space(training: xr.Dataset, path: str | os.PathLike) -> Path:
 
 
 def _intensity_background(ingest: xr.Dataset, grid: xr.DataArray) -> tuple[xr.DataArray, str]:
-    """The reference view's intensity on the pixels of ``grid``, NaN where invalid, and the view's stem."""
+    """Return the reference view's intensity on the pixels of ``grid``, NaN where invalid, and the view's stem."""
     view = ingest.attrs.get("reference_view", ingest["view"].values[0])
     intensity = ingest["intensity"].sel(view=view)
     if "valid" in ingest:
@@ -659,7 +656,7 @@ def plot_labels(
 
 
 def plot_roughness(roughness: xr.Dataset, path: str | os.PathLike) -> Path:
-    """A scene's indicative roughness map beside the specimens' relation of mean n and roughness.
+    """Draw a scene's indicative roughness map beside the specimens' relation of mean n and roughness.
 
     Parameters
     ----------

@@ -46,7 +46,7 @@ _SCENE_TRUTH = "truth.npz"
 
 
 def _inscribed_roi(mask: np.ndarray, where: str) -> dict[str, list[int]]:
-    """The bounding box of ``mask``, shrunk evenly until every pixel inside is True, as a roi."""
+    """Shrink the bounding box of ``mask`` evenly until every pixel inside is True; return it as a roi."""
     rows = np.flatnonzero(mask.any(axis=1))
     columns = np.flatnonzero(mask.any(axis=0))
     if rows.size == 0:
@@ -157,7 +157,7 @@ def _acquire(acquisition: Acquisition, run: _Run) -> Geometry:
 
 
 def _views_entry(acquisition: Acquisition) -> dict:
-    """``views``, and ``reference`` unless it is the first view (campaign.yaml's default)."""
+    """Return ``views``, and ``reference`` unless it is the first view (campaign.yaml's default)."""
     entry = {"views": acquisition.folder}
     if acquisition.reference != 0:
         entry["reference"] = acquisition.reference_stem
@@ -165,7 +165,7 @@ def _views_entry(acquisition: Acquisition) -> dict:
 
 
 def _describe(acquisition: Acquisition, reference: Geometry, run: _Run) -> dict:
-    """The campaign.yaml entry of an acquisition (writing a scene's truth file)."""
+    """Describe an acquisition by its campaign.yaml entry (writing a scene's truth file)."""
     preset = run.preset
     if acquisition.kind == "wall":
         return {"wall": acquisition.folder}

@@ -57,7 +57,7 @@ class PinholeCamera:
         return {"fx": float(self.fx), "fy": float(self.fy), "cx": self.cx, "cy": self.cy}
 
     def rays(self) -> np.ndarray:
-        """Unit viewing rays of all pixels.
+        """Compute the unit viewing rays of all pixels.
 
         Returns
         -------

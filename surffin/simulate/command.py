@@ -42,7 +42,7 @@ def cli_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def _campaign(args: argparse.Namespace) -> Validation:
-    """The design and file options the arguments ask for: a validation campaign's, or a preset's with the defaults."""
+    """Choose the design and file options the arguments ask for: a validation campaign's or a preset's with defaults."""
     if args.validation is not None:
         chosen = VALIDATION[args.validation]
     else:

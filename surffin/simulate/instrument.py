@@ -107,7 +107,7 @@ class Instrument:
         return self.gain * instrument_function(self.coef, distance, aoi) * R
 
     def calibration(self, rho_wall: float) -> tuple[np.ndarray, float]:
-        """What a perfect calibration on a Lambertian wall finds, in the gauge E = 1.
+        """Compute what a perfect calibration on a Lambertian wall finds, in the gauge E = 1.
 
         A wall of reflectance ``rho_wall`` gives ``I / cos(theta) = g rho_wall f``;
         moving E into the distance factor gives ``A' = g rho_wall E A``,
@@ -158,7 +158,7 @@ def draw_instrument(
     gain: float,
     rng: np.random.Generator,
 ) -> Instrument:
-    """A camera's per-pixel instrument function.
+    """Draw a camera's per-pixel instrument function.
 
     Parameters
     ----------
@@ -188,7 +188,7 @@ def draw_instrument(
 
 
 def _growing(level: float, cap: float, reference: float, signal: np.ndarray) -> np.ndarray:
-    """A noise level that grows as ``1/sqrt(signal)`` below ``reference`` counts, from ``level`` up to ``cap``.
+    """Compute a noise level that grows as ``1/sqrt(signal)`` below ``reference`` counts, from ``level`` up to ``cap``.
 
     A ``cap`` at or below ``level`` means no growth: ``level`` everywhere
     (NaN where ``signal`` is NaN).

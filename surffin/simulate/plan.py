@@ -119,7 +119,7 @@ def _wall(preset: Preset, seed: int, repeat: bool = False) -> Acquisition:
 
 
 def _reference(preset: Preset, seed: int, repeat: bool = False) -> Acquisition:
-    """The panel on the wall, fronto-parallel, all views from one pose (the panel on the same pixels).
+    """Plan the panel on the wall, fronto-parallel, all views from one pose (the panel on the same pixels).
 
     The repeat set's pose is up to ``repeat_shift`` closer, tilted by up to
     ``repeat_turn`` (random azimuth) and rolled by up to ``roll``, still aimed
@@ -221,7 +221,7 @@ def _check_reference_view(preset: Preset) -> None:
 
 
 def plan_campaign(preset: Preset, seed: int) -> list[Acquisition]:
-    """The acquisitions of a campaign: what is in front of the camera, and from where.
+    """Plan the acquisitions of a campaign: what is in front of the camera, and from where.
 
     Parameters
     ----------

@@ -73,7 +73,7 @@ class Specimen:
 
 
 def plaster(name: str, roughness_mm: float, R0: float, grain_length: float = 0.001) -> Specimen:
-    """A gypsum plaster specimen whose scattering and grain follow its roughness.
+    """Make a gypsum plaster specimen whose scattering and grain follow its roughness.
 
     ``n = 1.30 - 2.4 roughness_mm``; the fine grain of R0 has relative amplitude
     ``0.01 + 0.2 roughness_mm``, plus a 1 % blotch at 4 mm scale; n varies by
@@ -115,7 +115,7 @@ def plaster(name: str, roughness_mm: float, R0: float, grain_length: float = 0.0
 def class_material(
     name: str, R0: float, n: float, grain: float, spread: tuple[float, float] = (0.025, 0.0115)
 ) -> Material:
-    """A class's material from its own means and within-class spreads.
+    """Make a class's material from its own means and within-class spreads.
 
     R0 varies by ``spread[0]`` (relative standard deviation) and n by
     ``spread[1]`` (relative, so ``n * spread[1]`` absolute), each in a 10 mm
@@ -183,13 +183,13 @@ def another_piece(specimen: Specimen, suffix: str, thickness: float | None = Non
 
 
 def _plasters(grain_length: float) -> tuple[Specimen, ...]:
-    """The paper's four specimens S1..S4 (roughness of its Table 4)."""
+    """Make the paper's four specimens S1..S4 (roughness of its Table 4)."""
     table = (("S1", 0.0068, 0.80), ("S2", 0.0255, 0.86), ("S3", 0.0532, 0.92), ("S4", 0.1459, 0.81))
     return tuple(plaster(name, roughness, R0, grain_length) for name, roughness, R0 in table)
 
 
 def board_material(grain_length: float = 0.001, R0: float = 0.45) -> Material:
-    """The board the specimens lie on: cm-scale blotches (8 %) plus a fine grain (3 %).
+    """Make the board the specimens lie on: cm-scale blotches (8 %) plus a fine grain (3 %).
 
     Parameters
     ----------

@@ -118,7 +118,7 @@ class Face:
 
 
 def keyed_rng(seed: int, *key: str | int) -> np.random.Generator:
-    """An independent random stream named by a key, reproducible for one seed.
+    """Make an independent random stream named by a key, reproducible for one seed.
 
     Streams of different keys are independent (``SeedSequence`` spawn keys), so
     what a view, texture or instrument draws does not depend on what else is
@@ -140,7 +140,7 @@ def keyed_rng(seed: int, *key: str | int) -> np.random.Generator:
 
 
 def random_field(rng: np.random.Generator, size: int, length: float) -> np.ndarray:
-    """A periodic, spatially correlated random field of zero mean and unit variance.
+    """Draw a periodic, spatially correlated random field of zero mean and unit variance.
 
     Parameters
     ----------
@@ -405,7 +405,7 @@ def render(scene: Scene, camera: PinholeCamera, pose: np.ndarray) -> Geometry:
 
 
 def plane_face(name: str, material: Material, depth: float = 0.0) -> Face:
-    """An unbounded plane Z = ``depth`` facing the camera (-Z), axes along world X and Y.
+    """Make an unbounded plane Z = ``depth`` facing the camera (-Z), axes along world X and Y.
 
     Parameters
     ----------
@@ -439,7 +439,7 @@ def box_faces(
     material: Material,
     label: int,
 ) -> list[Face]:
-    """A square specimen raised from the board (Z = 0) towards the camera.
+    """Make a square specimen raised from the board (Z = 0) towards the camera.
 
     Parameters
     ----------

@@ -105,7 +105,7 @@ def item_truth(
     u_ref: np.ndarray,
     v_ref: np.ndarray,
 ) -> xr.Dataset:
-    """The truth store of a specimen or scene.
+    """Build the truth store of a specimen or scene.
 
     Parameters
     ----------
@@ -163,7 +163,7 @@ def item_truth(
 
 
 def instrument_truth(instrument: Instrument, preset: Preset) -> xr.Dataset:
-    """The instrument truth store.
+    """Build the instrument truth store.
 
     Parameters
     ----------
