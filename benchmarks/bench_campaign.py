@@ -1,68 +1,27 @@
-"""Campaign scale: specimens per minute, memory per job, start-up share; one cube 10x a frame.
+"""Campaign scale: specimens per minute and the whole run's peak memory; one cube 10x a frame.
 
-Run by hand: ``python benchmarks/bench_campaign.py [--specimens 10 50] [--variants default ...]
-[--cubes 480x640 1600x1920] [--workdir DIR]`` (about 15 minutes on 2 cores with the defaults,
-each further variant adds its campaign runs). Prints tables; nothing is written inside the
-repository.
+Run by hand: ``python benchmarks/bench_campaign.py [--specimens 12 48] [--variants default ...]
+[--cubes 480x640 1600x1920] [--workdir DIR]``; prints tables, writes nothing in the repository.
+Each campaign is the ``paper`` preset scaled to N specimens (``scaled_preset``) with 20 wall views
+instead of 105, rendered first (not timed), then processed by ``snakemake --cores 2`` with the
+repository's config and workflow profile: every job runs in a thread of the snakemake process,
+its work in a worker process (``surffin.pipeline.jobs.in_worker``).
 
-Campaigns
----------
-Each campaign is the ``paper`` preset scaled to N reference specimens with
-:func:`surffin.simulate.presets.scaled_preset` (the four plaster classes repeated, each
-specimen with its own textures, place and poses; the scene T1 keeps one specimen of each
-class) and a smaller wall set (5 distances x 4 tilts = 20 views instead of 105) so that
-rendering and the calibration stay quick. It is rendered first (not timed), then processed
-with ``snakemake --cores 2`` and the repository's default configuration.
+- **spec/min** = N / wall time of the snakemake command (parsing, DAG, every job, bookkeeping).
+- **peak MB** = the RSS of the snakemake process and all its children, summed, sampled every 0.2 s
+  (at least **max process MB**: the largest single process's high-water mark, ``wait4``'s ru_maxrss).
+- **stage** = the work the jobs logged (``<stage> done in X s`` of ``run_stage``/``run_ingest``,
+  else the job's benchmark ``s``) x its threads, over the ``cores x wall`` budget; **overhead** =
+  1 - stage: snakemake's own time and idle cores.
+- ``--variants``: ``scene figures`` (``item_figures: scenes``), ``ilp scheduler``, ``chunks 256``
+  (against 512), ``item stages 2 threads`` (``--set-threads``: one per-item stage at a time, two dask
+  threads) and ``processes`` (no ``force-use-threads``: each job a spawned snakemake process).
+Targets: >= 60 specimens/min at 48 specimens with the default config; whole-run peak memory.
 
-- **specimens per minute** = N / wall time of the snakemake command (from its start to its
-  exit: parsing, DAG, every job, bookkeeping).
-- **peak memory per job** = ``max_rss`` of the job's benchmark TSV (snakemake's
-  ``benchmark:`` files under the logs folder), median and maximum per rule.
-- **where the wall time goes**: the budget is ``cores x wall`` core-seconds. Each job holds
-  ``threads`` cores for ``s`` seconds (benchmark TSV). Of that, the *stage time* is what the
-  stage itself logged as its work (``<stage> done in X s`` of :func:`surffin.pipeline.run.run_stage`
-  and ``run_ingest``, ``item <name> done in X s`` of ``run_item``: opening inputs, computing,
-  writing the stores); the rest of ``s`` is *job start-up*: the new Python process, snakemake's
-  script preamble, imports, and exit. Rules that do not log a total (calibration, training,
-  summary, figures) are charged the median start-up of the jobs that do, in the same run. What
-  the jobs do not hold is *idle*: snakemake parsing the workflow and validating the campaign,
-  building the DAG, and its bookkeeping between jobs.
-  **overhead** = (start-up + idle) / budget = 1 - stage time / budget; **no-overhead
-  spec/min** = spec/min / (stage share), the rate if only the stages' own work took time (with
-  the same threads per job). A no-op start-up (a process importing snakemake's script support,
-  ``surffin.pipeline.run``, ``dask.array`` and ``zarr``) is printed beside it as a floor.
-- **first use**: the logged stage time still holds one-off costs of a fresh process (modules
-  imported on first use, first zarr open, dask's first graph). Each per-item stage of the first
-  campaign's first specimen (and its scene's labels) is rerun twice in a fresh process from the
-  parameters and inputs recorded in its store; first minus second call is that cost. **overhead
-  incl. first use** also charges every job the median of it.
-- ``--variants`` runs each campaign also with other settings, to measure the defaults against
-  them: ``item stages 2 threads`` (``--set-threads``: one per-item stage at a time, with two
-  dask threads; the defaults run them at one thread, two jobs at once), ``ilp scheduler``
-  (snakemake's ILP job scheduler instead of the greedy one of ``profiles/default``), ``chunks
-  256`` (the former default chunks, 256 x 256, against 512 x 512), ``item jobs`` (config
-  ``jobs: item``: one job per item from view files to features), ``item jobs, scene
-  figures`` (the same with ``item_figures: scenes``: no feature figure per specimen) and
-  ``item batches, scene figures`` (the same with ``item_batches: 8``: the specimens' chains in
-  8 batch jobs, reported as rule ``item_batch``).
-
-Targets: >= 30 specimens/min, overhead <= 50 %, peak memory per job <= 1 GB and not growing
-with N.
-
-One large cube
---------------
-A synthetic (view, y, x) = (5, H, W) cube (reflectance float64 from the scattering model with
-noise, AOI float32) is written as a store with chunks (view -1, 256, 256); a fresh process then
-runs :func:`surffin.method.scattering.fit_scattering`, :func:`surffin.method.features.variability` and
-:func:`surffin.method.features.features` (Gaussian smoothing) from it and writes the features store,
-under the threads scheduler with 2 workers. Peak RSS is the process's high-water mark (VmHWM);
-the baseline is that mark after the imports. Bounded memory means the increment grows far
-less than the cube (1600 x 1920 is 10x a 480 x 640 camera frame, 3200 x 3840 40x): the chunks
-in flight, and the band of chunk rows the neighbourhood filters need, whose size follows the
-image width.
-
-The machine is shared: wall times move with other jobs' load (printed with each run), so
-read ratios; memory is not affected.
+One cube: a synthetic (5, H, W) store, chunks (view -1, 256, 256), through fit_scattering,
+variability and features in a fresh process (threads x 2); its peak RSS (VmHWM) over the baseline
+after the imports should grow far less than the cube (1600 x 1920 is 10x a 480 x 640 frame).
+The machine is shared: wall times move with its load (printed with each run); memory does not.
 """
 
 from __future__ import annotations
@@ -78,28 +37,31 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections import defaultdict
 from pathlib import Path
+
+import psutil
 
 REPO = Path(__file__).resolve().parents[1]
 CORES = 2
 #: Per-item stages: the rules the ``item stages 2 threads`` variant runs at two threads.
 ITEM_STAGES = ("aoi", "reflectance", "registration", "features", "labels")
+#: Stands for a copy of ``profiles/default`` without ``force-use-threads``, written for the run.
+NO_THREADS_PROFILE = "<profiles/default without force-use-threads>"
 #: Variants of a campaign run: name -> (extra snakemake arguments, config overrides). The
 #: overrides go through a config file: ``--config`` would pass nested numbers as strings.
 VARIANTS = {
     "default": ((), {}),
-    "item stages 2 threads": (("--set-threads", *(f"{rule}=2" for rule in ITEM_STAGES)), {}),
+    "scene figures": ((), {"item_figures": "scenes"}),
     "ilp scheduler": (("--scheduler", "ilp"), {}),
     "chunks 256": ((), {"chunks": {"y": 256, "x": 256}}),
-    "item jobs": ((), {"jobs": "item"}),
-    "item jobs, scene figures": ((), {"jobs": "item", "item_figures": "scenes"}),
-    "item batches, scene figures": ((), {"jobs": "item", "item_figures": "scenes", "item_batches": 8}),
+    "item stages 2 threads": (("--set-threads", *(f"{rule}=2" for rule in ITEM_STAGES)), {}),
+    "processes": (("--workflow-profile", NO_THREADS_PROFILE), {}),
 }
-#: A job's logged work: the last "<stage> done in" line (an item job logs each stage, then its total;
-#: a batch job each item, then the batch's total).
-_DONE = re.compile(r"INFO (?:item \S+|batch of \d+ items|\w+) done in ([0-9.]+) s$", re.M)
+#: A job's logged work: the last "<stage> done in" line of its log.
+_DONE = re.compile(r"INFO \w+ done in ([0-9.]+) s$", re.M)
 
 
 # --- output --------------------------------------------------------------------------------
@@ -117,7 +79,7 @@ def table(title: str, headers: list[str], rows: list[list]) -> None:
 
 
 def load() -> str:
-    """The 1, 5 and 15 minute load averages (other jobs share the machine)."""
+    """Return the 1, 5 and 15 minute load averages (other jobs share the machine)."""
     return "load %.2f %.2f %.2f" % os.getloadavg()
 
 
@@ -126,39 +88,41 @@ def load() -> str:
 
 @dataclasses.dataclass
 class Job:
-    """One finished snakemake job: its rule, cores held, wall time, stage time and peak memory."""
+    """One finished snakemake job: its rule, cores held, wall time and logged work (None: none logged)."""
 
     rule: str
     threads: int
     seconds: float
-    max_rss_mb: float
-    stage_seconds: float | None
+    logged_seconds: float | None
+
+    @property
+    def stage_seconds(self) -> float:
+        """Its work: the logged stage time, else the job's wall time."""
+        return self.seconds if self.logged_seconds is None else self.logged_seconds
+
+
+@dataclasses.dataclass
+class Usage:
+    """What a command used: wall seconds, peak summed RSS of its process tree, largest process's peak."""
+
+    wall: float
+    peak_mb: float
+    max_process_mb: float
 
 
 @dataclasses.dataclass
 class Run:
-    """One snakemake run of a campaign: its size, variant, wall time, jobs and the load before it."""
+    """One snakemake run of a campaign: its size, variant, resource use, jobs and the load before it."""
 
     specimens: int
     label: str
-    wall: float
+    usage: Usage
     jobs: list[Job]
     load: str
 
-    @property
-    def startup(self) -> float:
-        """Median job start-up: benchmark seconds minus the stage's own logged time."""
-        return statistics.median(j.seconds - j.stage_seconds for j in self.jobs if j.stage_seconds is not None)
-
-    def stage_seconds(self, job: Job) -> float:
-        return job.stage_seconds if job.stage_seconds is not None else max(job.seconds - self.startup, 0.0)
-
-    def shares(self) -> tuple[float, float, float]:
-        """Stage time, job start-up and idle as shares of the ``cores x wall`` budget."""
-        budget = CORES * self.wall
-        held = sum(j.threads * j.seconds for j in self.jobs)
-        stage = sum(j.threads * self.stage_seconds(j) for j in self.jobs)
-        return stage / budget, (held - stage) / budget, 1 - held / budget
+    def share(self, seconds: float) -> float:
+        """Core-seconds as a share of the run's ``cores x wall`` budget."""
+        return seconds / (CORES * self.usage.wall)
 
 
 def render(directory: Path, specimens: int) -> float:
@@ -177,10 +141,9 @@ def render(directory: Path, specimens: int) -> float:
 
 
 def parse_jobs(output: str) -> list[Job]:
-    """The jobs of a snakemake run, from its printed job blocks and their benchmark and log files."""
+    """Read the jobs of a snakemake run from its printed job blocks and their benchmark and log files."""
     jobs = []
     for block in re.split(r"^\[.*\]\n(?=(?:local)?rule )", output, flags=re.M)[1:]:
-        rule = re.sub(r"^item_batch_\d+$", "item_batch", re.match(r"(?:local)?rule (\w+):", block).group(1))
         bench = re.search(r"^\s+benchmark: (.+)$", block, re.M)
         if bench is None:  # the target rule `all`
             continue
@@ -190,80 +153,88 @@ def parse_jobs(output: str) -> list[Job]:
         done = _DONE.findall(log_text)
         jobs.append(
             Job(
-                rule=rule,
+                rule=re.match(r"(?:local)?rule (\w+):", block).group(1),
                 threads=int(threads.group(1)) if threads else 1,
                 seconds=float(values["s"]),
-                max_rss_mb=float(values["max_rss"]),
-                stage_seconds=float(done[-1]) if done else None,
+                logged_seconds=float(done[-1]) if done else None,
             )
         )
     return jobs
 
 
-def process(campaign: Path, workdir: Path, extra: tuple[str, ...], overrides: dict) -> tuple[float, list[Job]]:
-    """Run ``snakemake --cores 2`` on a campaign; returns its wall time and jobs."""
+def no_threads_profile(folder: Path) -> Path:
+    """Copy ``profiles/default`` into ``folder`` without its ``force-use-threads`` line."""
+    lines = (REPO / "profiles" / "default" / "config.yaml").read_text().splitlines(keepends=True)
+    profile = folder / "profile-no-threads"
+    profile.mkdir(exist_ok=True)
+    (profile / "config.yaml").write_text("".join(line for line in lines if not line.startswith("force-use-threads:")))
+    return profile
+
+
+def tree_rss_mb(process: psutil.Process) -> float:
+    """Sum the RSS of a process and its descendants, MB (0 once it is gone)."""
+    total = 0
+    try:
+        members = [process, *process.children(recursive=True)]
+    except psutil.Error:
+        return 0.0
+    for member in members:
+        try:
+            total += member.memory_info().rss
+        except psutil.Error:  # ended meanwhile
+            pass
+    return total / 2**20
+
+
+def measured(cmd: list[str], cwd: Path, output: Path) -> tuple[int, Usage]:
+    """Run ``cmd`` with stdout and stderr into ``output``; its exit code and what it used.
+
+    The peak summed RSS is sampled every 0.2 s while it runs (and is at least the largest process's
+    peak); CPU time and that largest peak come from ``wait4`` (the command and its waited-for descendants).
+    """
+    with open(output, "w") as stream:
+        start = time.perf_counter()
+        child = subprocess.Popen(cmd, stdout=stream, stderr=subprocess.STDOUT, cwd=cwd)
+        peak, done = [0.0], threading.Event()
+
+        def sample():
+            process = psutil.Process(child.pid)
+            while not done.wait(0.2):
+                peak[0] = max(peak[0], tree_rss_mb(process))
+
+        sampler = threading.Thread(target=sample, daemon=True)
+        sampler.start()
+        _, status, rusage = os.wait4(child.pid, 0)
+        wall = time.perf_counter() - start
+        done.set()
+        sampler.join()
+        child.returncode = os.waitstatus_to_exitcode(status)  # reaped here, for wait4's rusage
+    largest = rusage.ru_maxrss / 1024
+    usage = Usage(wall, max(peak[0], largest), largest)
+    return child.returncode, usage
+
+
+def process(campaign: Path, workdir: Path, extra: tuple[str, ...], overrides: dict) -> tuple[Usage, list[Job]]:
+    """Run ``snakemake --cores 2`` on a campaign; returns what it used and its jobs."""
     cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir)]
-    cmd += ["--cores", str(CORES), *extra]
+    cmd += ["--cores", str(CORES)]
+    cmd += [str(no_threads_profile(workdir)) if arg == NO_THREADS_PROFILE else arg for arg in extra]
     if overrides:
         configfile = workdir / "overrides.json"  # JSON is YAML
         configfile.write_text(json.dumps(overrides))
         cmd += ["--configfiles", str(configfile)]
     cmd += ["--config", f"campaign={campaign}", f"processed={workdir / 'processed'}", f"logs={workdir / 'logs'}"]
-    start = time.perf_counter()
-    run = subprocess.run(cmd, capture_output=True, text=True, cwd=workdir)
-    wall = time.perf_counter() - start
-    if run.returncode != 0:
-        sys.exit(f"snakemake failed in {workdir}:\n{run.stderr[-4000:]}")
-    return wall, parse_jobs(run.stdout + run.stderr)
+    output = workdir / "snakemake.out"
+    returncode, usage = measured(cmd, workdir, output)
+    text = output.read_text()
+    if returncode != 0:
+        sys.exit(f"snakemake failed in {workdir}:\n{text[-4000:]}")
+    return usage, parse_jobs(text)
 
 
-def noop_startup(repeat: int = 5) -> float:
-    """Median seconds of a Python process that only imports what every stage job imports."""
-    imports = "import snakemake.script, surffin.pipeline.run, dask.array, zarr, xarray.backends.zarr"
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        subprocess.run([sys.executable, "-c", imports], check=True)
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
-
-
-def first_and_second_call(store: str, scratch: str) -> dict:
-    """Rerun the stage that made ``store`` twice in this fresh process, from its recorded provenance.
-
-    Returns
-    -------
-    dict
-        ``stage``, seconds of ``import surffin.pipeline.run``, of the ``first`` and the ``second`` call.
-    """
-    start = time.perf_counter()
-    from surffin.pipeline.run import run_stage
-
-    imported = time.perf_counter() - start
-    attrs = json.loads((Path(store) / "zarr.json").read_text())["attributes"]  # reading it imports nothing
-    stage = attrs["surffin_stage"]
-    seconds = []
-    for call in range(2):
-        start = time.perf_counter()
-        run_stage(
-            stage, f"{scratch}-{call}.zarr", stores=attrs["surffin_inputs"], params=attrs["surffin_parameters"],
-            scheduler="threads", threads=CORES,
-        )
-        seconds.append(time.perf_counter() - start)
-    return {"stage": stage, "import": imported, "first": seconds[0], "second": seconds[1]}
-
-
-def first_use(processed: Path, scratch: Path) -> list[dict]:
-    """First and second call of each per-item stage on the campaign's first specimen and scene, in fresh processes."""
-    specimen = sorted(processed.glob("features/*.zarr"))[0].name
-    stores = [processed / folder / specimen for folder in ("aoi", "reflectance", "registered", "features")]
-    stores += sorted(processed.glob("labels/*.zarr"))[:1]
-    return [in_fresh_process(first_and_second_call, str(store), str(scratch / store.parent.name)) for store in stores]
-
-
-def campaign_runs(root: Path, sizes: list[int], variants: list[str]) -> tuple[list[Run], list[dict]]:
-    """Render and process each campaign size in each variant; first-use costs from the first run."""
-    runs, calls = [], []
+def campaign_runs(root: Path, sizes: list[int], variants: list[str]) -> list[Run]:
+    """Render and process each campaign size in each variant."""
+    runs = []
     for n in sizes:
         campaign = root / f"campaign-{n}"
         seconds = render(campaign, n)
@@ -272,68 +243,70 @@ def campaign_runs(root: Path, sizes: list[int], variants: list[str]) -> tuple[li
             workdir = root / f"run-{n}-{len(runs)}"
             workdir.mkdir()
             before = load()
-            wall, jobs = process(campaign, workdir, *VARIANTS[label])
-            runs.append(Run(n, label, wall, jobs, before))
-            print(f"processed {n} specimens ({label}) in {wall:.0f} s ({before} before)", flush=True)
-            if not calls:
-                calls = first_use(workdir / "processed", root)
+            usage, jobs = process(campaign, workdir, *VARIANTS[label])
+            runs.append(Run(n, label, usage, jobs, before))
+            print(f"processed {n} specimens ({label}) in {usage.wall:.0f} s ({before} before)", flush=True)
             shutil.rmtree(workdir / "processed")
-    return runs, calls
+    return runs
 
 
-def report_campaigns(runs: list[Run], calls: list[dict], noop: float) -> None:
-    """Print the run summary, where the time goes per rule, first-use costs and peak memory."""
-    first = statistics.median(c["first"] - c["second"] for c in calls)
+def report_campaigns(runs: list[Run]) -> None:
+    """Print the run summary and, per run, where the time goes per rule."""
     rows = []
     for run in runs:
-        stage, startup, idle = run.shares()
-        warm = sum(j.threads * max(run.stage_seconds(j) - first, 0.0) for j in run.jobs) / (CORES * run.wall)
-        rate = 60 * run.specimens / run.wall
+        stage = run.share(sum(j.threads * j.stage_seconds for j in run.jobs))
         rows.append(
-            [run.specimens, run.label, len(run.jobs), round(run.wall), round(rate, 1), round(rate / stage, 1),
-             f"{stage:.0%}", f"{startup:.0%}", f"{idle:.0%}", f"{1 - stage:.0%}", f"{1 - warm:.0%}",
-             round(run.startup, 2), round(max(j.max_rss_mb for j in run.jobs)), run.load]
+            [
+                run.specimens,
+                run.label,
+                len(run.jobs),
+                round(run.usage.wall),
+                round(60 * run.specimens / run.usage.wall, 1),
+                f"{stage:.0%}",
+                f"{1 - stage:.0%}",
+                round(run.usage.peak_mb),
+                round(run.usage.max_process_mb),
+                run.load,
+            ]
         )
     table(
-        f"Campaign runs (snakemake --cores {CORES}); targets >= 30 specimens/min, overhead <= 50 %, "
-        f"peak <= 1000 MB; no-op start-up {noop:.2f} s",
-        ["specimens", "variant", "jobs", "wall s", "spec/min", "no-overhead spec/min", "stage", "start-up", "idle",
-         "overhead", "incl. first use", "start-up s/job", "peak MB", "before"],
+        f"Campaign runs (snakemake --cores {CORES}); target >= 60 specimens/min at 48 specimens (default)",
+        [
+            "specimens",
+            "variant",
+            "jobs",
+            "wall s",
+            "spec/min",
+            "stage",
+            "overhead",
+            "peak MB",
+            "max process MB",
+            "before",
+        ],
         rows,
     )
     for run in runs:
-        budget = CORES * run.wall
         rows = [
-            [rule, len(jobs), jobs[0].threads, statistics.median(j.seconds for j in jobs),
-             statistics.median(run.stage_seconds(j) for j in jobs),
-             f"{sum(j.threads * j.seconds for j in jobs) / budget:.0%}"]
+            [
+                rule,
+                len(jobs),
+                jobs[0].threads,
+                statistics.median(j.seconds for j in jobs),
+                statistics.median(j.stage_seconds for j in jobs),
+                f"{run.share(sum(j.threads * j.seconds for j in jobs)):.0%}",
+                f"{run.share(sum(j.threads * j.stage_seconds for j in jobs)):.0%}",
+            ]
             for rule, jobs in by_rule(run).items()
         ]
         table(
             f"Where the time goes, {run.specimens} specimens, {run.label} (s: job wall; stage: logged work)",
-            ["rule", "jobs", "threads", "median s", "median stage s", "share of cores x wall"],
+            ["rule", "jobs", "threads", "median s", "median stage s", "s share", "stage share"],
             rows,
         )
-    table(
-        "Per-item stages run twice in a fresh process (run_stage from the stores' recorded provenance), s",
-        ["stage", "import surffin.pipeline.run", "first call", "second call", "first use"],
-        [[c["stage"], c["import"], c["first"], c["second"], c["first"] - c["second"]] for c in calls],
-    )
-    rules = list(dict.fromkeys(rule for run in runs for rule in by_rule(run)))
-    rows = [
-        [rule, *(f(j.max_rss_mb for j in by_rule(run)[rule]) if rule in by_rule(run) else "-"
-                 for run in runs for f in (statistics.median, max))]
-        for rule in rules
-    ]
-    table(
-        "Peak memory per job, MB (max_rss of the benchmark TSVs, sampled every 0.5 s), by run",
-        ["rule", *(f"{run.specimens} {run.label}: {stat}" for run in runs for stat in ("median", "max"))],
-        [[row[0], *(v if v == "-" else round(v) for v in row[1:])] for row in rows],
-    )
 
 
 def by_rule(run: Run) -> dict[str, list[Job]]:
-    """The run's jobs grouped by rule, in order of first appearance."""
+    """Group the run's jobs by rule, in order of first appearance."""
     jobs = defaultdict(list)
     for job in run.jobs:
         jobs[job.rule].append(job)
@@ -344,13 +317,13 @@ def by_rule(run: Run) -> dict[str, list[Job]]:
 
 
 def write_cube(path: str, shape: tuple[int, int, int]) -> None:
-    """A synthetic registered cube: AOI from 0 to 40 deg over the views, plaster-like R0 and n, 2 % noise."""
+    """Write a synthetic registered cube: AOI 0 to 40 deg over the views, plaster-like R0 and n, 2 % noise."""
     import dask.array as da
     import numpy as np
     import xarray as xr
 
-    from surffin.method.scattering import scattering_model
     from surffin.io.store import write_store
+    from surffin.method.scattering import scattering_model
 
     nview, ny, nx = shape
     rng = da.random.default_rng(0)
@@ -378,10 +351,10 @@ def peak_rss_mb() -> float:
 
 def features_from_cube(source: str, output: str) -> dict:
     """Fit and features of a cube store into a features store; peak RSS in this (fresh) process."""
-    from surffin.method.features import features, variability
-    from surffin.pipeline.jobs import dask_scheduler
-    from surffin.method.scattering import fit_scattering
     from surffin.io.store import open_store, write_store
+    from surffin.method.features import features, variability
+    from surffin.method.scattering import fit_scattering
+    from surffin.pipeline.jobs import dask_scheduler
 
     baseline = peak_rss_mb()
     start = time.perf_counter()
@@ -414,42 +387,70 @@ def report_cubes(root: Path, shapes: list[tuple[int, int, int]]) -> None:
         cube_mb = shape[0] * shape[1] * shape[2] * (8 + 4) / 2**20
         increment = result["peak"] - result["baseline"]
         rows.append(
-            [f"{shape[0]}x{shape[1]}x{shape[2]}", round(shape[1] * shape[2] / (480 * 640), 1), round(cube_mb),
-             round(result["baseline"]), round(result["peak"]), round(increment), f"{increment / cube_mb:.2f}",
-             round(result["seconds"], 1), round(shape[1] * shape[2] / result["seconds"] / 1e6, 2), before]
+            [
+                f"{shape[0]}x{shape[1]}x{shape[2]}",
+                round(shape[1] * shape[2] / (480 * 640), 1),
+                round(cube_mb),
+                round(result["baseline"]),
+                round(result["peak"]),
+                round(increment),
+                f"{increment / cube_mb:.2f}",
+                round(result["seconds"], 1),
+                round(shape[1] * shape[2] / result["seconds"] / 1e6, 2),
+                before,
+            ]
         )
         shutil.rmtree(source)
         shutil.rmtree(output)
     table(
         f"One cube through fit_scattering + features from a store chunked (view -1, 256, 256), threads x{CORES}",
-        ["cube", "frames", "cube MB", "baseline MB", "peak MB", "increment MB", "increment/cube", "s", "Mpx/s",
-         "before"],
+        [
+            "cube",
+            "frames",
+            "cube MB",
+            "baseline MB",
+            "peak MB",
+            "increment MB",
+            "increment/cube",
+            "s",
+            "Mpx/s",
+            "before",
+        ],
         rows,
     )
 
 
 def main():
+    """Render the campaigns, run the variants and print the tables."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--specimens", type=int, nargs="*", default=[10, 50], help="campaign sizes")
+    parser.add_argument("--specimens", type=int, nargs="*", default=[12, 48], help="campaign sizes")
     parser.add_argument(
-        "--variants", nargs="+", choices=list(VARIANTS), default=["default"],
+        "--variants",
+        nargs="+",
+        choices=list(VARIANTS),
+        default=["default"],
         help="run variants to compare (default: the repository's settings only)",
     )
     parser.add_argument("--cubes", nargs="*", default=["480x640", "1600x1920"], help="cube sizes HxW (5 views)")
-    parser.add_argument("--workdir", type=Path, help="scratch folder (default: a temporary one, removed after)")
+    parser.add_argument(
+        "--workdir",
+        type=Path,
+        help="keep the campaigns and the runs' logs in a new folder here (default: a temporary one, removed after)",
+    )
     args = parser.parse_args()
     if args.workdir is not None:
         args.workdir.mkdir(parents=True, exist_ok=True)
     root = Path(tempfile.mkdtemp(prefix="surffin-bench-", dir=args.workdir))
     try:
         print(f"surffin campaign benchmark in {root}, {os.cpu_count()} cpus, {load()}", flush=True)
-        runs, calls = campaign_runs(root, args.specimens, args.variants)
+        runs = campaign_runs(root, args.specimens, args.variants)
         if runs:
-            report_campaigns(runs, calls, noop_startup())
+            report_campaigns(runs)
         if args.cubes:
             report_cubes(root, [(5, *map(int, size.split("x"))) for size in args.cubes])
     finally:
-        shutil.rmtree(root, ignore_errors=True)
+        if args.workdir is None:
+            shutil.rmtree(root, ignore_errors=True)
 
 
 if __name__ == "__main__":

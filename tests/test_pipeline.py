@@ -3,9 +3,11 @@
 import dataclasses
 import logging
 import math
+import os
 import subprocess
 import sys
 import threading
+from concurrent.futures.process import BrokenProcessPool
 
 import dask
 import dask.array
@@ -16,7 +18,7 @@ import xarray as xr
 import surffin
 from surffin.method.features import variability
 from surffin.method.stages import ITEM_CHAIN, aoi_stage, process_item
-from surffin.pipeline.jobs import dask_scheduler, logging_to
+from surffin.pipeline.jobs import dask_scheduler, in_worker, logging_to
 from surffin.pipeline.parameters import read_config
 from surffin.pipeline.run import run_calibration, run_ingest, run_stage
 from surffin.pipeline.table import STAGES, input_paths
@@ -179,3 +181,30 @@ def test_the_plan_refuses_a_calibration_of_another_camera(tiny_campaign, tmp_pat
     config = {**read_config(), "calibration_store": str(calibration)}
     with pytest.raises(surffin.StoreError, match="sensor"):
         Plan.read(tiny_campaign, config)
+
+
+class Name(str):
+    """A str subclass, as snakemake's file names are."""
+
+
+def crash():
+    os._exit(3)
+
+
+def test_in_worker_runs_the_call_in_another_process_with_plain_arguments():
+    pid, argument = in_worker(worker_report, Name("a"), {"b": (Name("c"),)})
+    assert pid != os.getpid()
+    assert argument == ("str", {"b": ["c"]})
+    assert in_worker(worker_report, "x")[0] == pid  # the worker is kept for the next job
+
+
+def test_in_worker_raises_the_call_s_error_and_survives_a_crash(tmp_path):
+    with pytest.raises(ValueError, match="stage aoi reads the stores"):
+        in_worker(run_stage, aoi_stage, tmp_path / "a.zarr", stores={"aoi": tmp_path})
+    with pytest.raises(BrokenProcessPool):
+        in_worker(crash)
+    assert in_worker(worker_report, "after")[1] == ("str", "after")
+
+
+def worker_report(name, mapping=None):
+    return os.getpid(), (type(name).__name__, name if mapping is None else mapping)

@@ -254,12 +254,6 @@ def test_bad_campaign_fails_before_any_job_naming_the_file(tiny_campaign, tmp_pa
     assert not (tmp_path / "processed").exists()
 
 
-def test_workflow_files_are_formatted():
-    snakefmt = Path(sys.executable).parent / "snakefmt"
-    run = subprocess.run([snakefmt, "--check", "Snakefile", "workflow/rules"], capture_output=True, text=True, cwd=REPO)
-    assert run.returncode == 0, run.stdout + run.stderr
-
-
 @pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_lint_is_clean(done, snakemake):
     run = snakemake(done, "--lint")

@@ -1,26 +1,32 @@
-"""Job plumbing: a job's log file and its dask scheduler, safe for jobs run side by side in threads.
+"""Job plumbing: where a job runs, its log file and its dask scheduler.
 
 The workflow runs its jobs in snakemake's own threads (``force-use-threads`` in
-``profiles/default``), so two jobs share one process. A job's log file takes
-the records of the thread that runs the job only, and the dask configuration,
-which is process-wide, is set by the first job that needs it and restored by
-the last one to leave, instead of each job setting and restoring it under the
-other's feet.
+``profiles/default``), and each job's work in a pool of worker processes kept
+for the run (:func:`in_worker`): no process start-up per job, and jobs in
+parallel despite the interpreter lock the threads share. A job's log file
+takes the records of the thread that runs the job only, and the dask
+configuration, which is process-wide, is set by the first job that needs it
+and restored by the last one to leave, so that jobs run side by side in
+threads of one process (a notebook, a test) do not disturb each other.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import multiprocessing
 import os
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Mapping
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
+from typing import Any
 
 import dask
 from dask.callbacks import Callback
 
-__all__ = ["logging_to", "dask_scheduler"]
+__all__ = ["logging_to", "dask_scheduler", "in_worker"]
 
 log = logging.getLogger("surffin")
 
@@ -160,3 +166,58 @@ def dask_scheduler(scheduler: str | None, threads: int = 1) -> Iterator[None]:
     with _SCHEDULER.use((scheduler, threads), lambda stack: _enter_scheduler(scheduler, threads, stack)):
         with _LogProgress():
             yield
+
+
+#: Modules the worker processes import once, when their server starts.
+_PRELOAD = ["surffin.pipeline.run", "surffin.pipeline.analyses"]
+_POOL: list[ProcessPoolExecutor] = []
+_POOL_LOCK = threading.Lock()
+
+
+def _pool(renew: bool = False) -> ProcessPoolExecutor:
+    """Return the process's pool of workers, made on first use (or anew when ``renew``)."""
+    with _POOL_LOCK:
+        if renew or not _POOL:
+            # forkserver: the workers are forked from a clean single-threaded server that has
+            # imported surffin, not from this multi-threaded process; they start as needed, at
+            # most one per core.
+            context = multiprocessing.get_context("forkserver")
+            context.set_forkserver_preload(_PRELOAD)
+            _POOL[:] = [ProcessPoolExecutor(max_workers=os.cpu_count(), mp_context=context)]
+        return _POOL[0]
+
+
+def _plain(value: Any) -> Any:
+    """Return ``value`` with str subclasses (snakemake's file names) as str and mappings as dicts."""
+    if isinstance(value, str):
+        return str(value)
+    if isinstance(value, Mapping):
+        return {_plain(key): _plain(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(item) for item in value]
+    return value
+
+
+def in_worker(function: Callable, /, *args: Any, **kwargs: Any) -> Any:
+    """Run ``function(*args, **kwargs)`` in a worker process and return what it returns.
+
+    The workflow's jobs run in snakemake's threads, which share one interpreter
+    lock: in threads, two jobs took as long as the same two one after the other.
+    Each job's work therefore runs in a pool of worker processes, started once
+    per run with surffin imported (``forkserver``), so that jobs run in parallel
+    without a process start-up each. A pool broken by a worker's crash fails
+    the jobs it was running and is replaced for the next ones.
+
+    Parameters
+    ----------
+    function : callable
+        A module-level function (it is sent to the worker by name).
+    *args, **kwargs
+        Its arguments: plain values, paths, mappings and sequences of them.
+    """
+    args, kwargs = _plain(args), _plain(kwargs)
+    try:
+        future = _pool().submit(function, *args, **kwargs)
+    except BrokenProcessPool:
+        future = _pool(renew=True).submit(function, *args, **kwargs)
+    return future.result()

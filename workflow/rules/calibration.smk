@@ -17,4 +17,4 @@ rule calibration:
         stage=calibration_parameters(config),
         code=STAGES["calibration"].version,
     run:
-        run_calibration(params.campaign, output[0], params=params.stage, log_path=log[0])
+        in_worker(run_calibration, params.campaign, output[0], params=params.stage, log_path=log[0])

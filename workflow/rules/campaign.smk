@@ -13,4 +13,4 @@ checkpoint default_campaign:
         preset=config["default_campaign"]["preset"],
         seed=config["default_campaign"]["seed"],
     run:
-        run_default_campaign(DEFAULT_CAMPAIGN, preset=params.preset, seed=params.seed, log_path=log[0])
+        in_worker(run_default_campaign, DEFAULT_CAMPAIGN, preset=params.preset, seed=params.seed, log_path=log[0])

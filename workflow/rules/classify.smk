@@ -18,7 +18,8 @@ rule training:
         max_per_class=config["classify"]["max_training_samples"],
         code=STAGES["training"].version,
     run:
-        run_training(
+        in_worker(
+            run_training,
             output[0],
             specimens=params.specimens,
             extra=tuple(params.extra),
@@ -46,7 +47,8 @@ rule labels:
         job=STAGE_JOB,
         code=STAGES["labels"].version,
     run:
-        run_stage(
+        in_worker(
+            run_stage,
             labels_stage,
             output[0],
             stores=dict(input.items()),
@@ -78,4 +80,11 @@ rule summary:
         truth=from_plan("scene_truth"),
         code=STAGES["summary"].version,
     run:
-        run_summary(output[0], features=params.features, labels=params.labels, truth=params.truth, log_path=log[0])
+        in_worker(
+            run_summary,
+            output[0],
+            features=params.features,
+            labels=params.labels,
+            truth=params.truth,
+            log_path=log[0],
+        )

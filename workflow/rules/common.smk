@@ -7,6 +7,7 @@ from surffin.analysis.sensitivity import OUTPUTS as SENSITIVITY_FILES
 from surffin.errors import SurffinError
 from surffin.io.campaign import NAME_PATTERN
 from surffin.method.stages import aoi_stage, features_stage, labels_stage, reflectance_stage, registration_stage
+from surffin.pipeline.jobs import in_worker
 from surffin.pipeline.parameters import aoi_parameters, calibration_parameters, label_parameters
 from surffin.pipeline.run import (
     run_calibration,

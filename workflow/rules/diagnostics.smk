@@ -17,7 +17,14 @@ rule calibration_repeat:
         stage=rules.calibration.params.stage,
         code=STAGES["calibration"].version,
     run:
-        run_calibration(params.campaign, output[0], params=params.stage, folders=params.folders, log_path=log[0])
+        in_worker(
+            run_calibration,
+            params.campaign,
+            output[0],
+            params=params.stage,
+            folders=params.folders,
+            log_path=log[0],
+        )
 
 
 rule calibration_diagnostics:
@@ -53,7 +60,8 @@ rule calibration_diagnostics:
         item_params=from_plan("diagnostics_item_parameters"),
         code=STAGES["diagnostics"].version,
     run:
-        run_calibration_diagnostics(
+        in_worker(
+            run_calibration_diagnostics,
             output.json,
             calibration=input.calibration,
             repeat=input.repeat or None,

@@ -24,7 +24,7 @@ rule ingest:
         chunks=config["chunks"],
         code=STAGES["ingest"].version,
     run:
-        run_ingest(params.campaign, wildcards.item, output[0], chunks=params.chunks, log_path=log[0])
+        in_worker(run_ingest, params.campaign, wildcards.item, output[0], chunks=params.chunks, log_path=log[0])
 
 
 rule aoi:
@@ -45,7 +45,8 @@ rule aoi:
         job=STAGE_JOB,
         code=STAGES["aoi"].version,
     run:
-        run_stage(
+        in_worker(
+            run_stage,
             aoi_stage,
             output[0],
             stores=dict(input.items()),
@@ -73,8 +74,14 @@ rule reflectance:
         job=STAGE_JOB,
         code=STAGES["reflectance"].version,
     run:
-        run_stage(
-            reflectance_stage, output[0], stores=dict(input.items()), **params.job, threads=threads, log_path=log[0]
+        in_worker(
+            run_stage,
+            reflectance_stage,
+            output[0],
+            stores=dict(input.items()),
+            **params.job,
+            threads=threads,
+            log_path=log[0],
         )
 
 
@@ -96,7 +103,8 @@ rule registration:
         job=STAGE_JOB,
         code=STAGES["registration"].version,
     run:
-        run_stage(
+        in_worker(
+            run_stage,
             registration_stage,
             output[0],
             stores=dict(input.items()),
@@ -125,7 +133,8 @@ rule features:
         job=STAGE_JOB,
         code=STAGES["features"].version,
     run:
-        run_stage(
+        in_worker(
+            run_stage,
             features_stage,
             output[0],
             stores=dict(input.items()),

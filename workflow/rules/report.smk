@@ -42,7 +42,7 @@ rule calibration_figures:
     params:
         code=STAGES["figures"].version,
     run:
-        run_figures(dict(output.items()), **dict(input.items()), log_path=log[0])
+        in_worker(run_figures, dict(output.items()), **dict(input.items()), log_path=log[0])
 
 
 rule classification_figures:
@@ -75,7 +75,7 @@ rule classification_figures:
     params:
         code=STAGES["figures"].version,
     run:
-        run_figures(dict(output.items()), **dict(input.items()), log_path=log[0])
+        in_worker(run_figures, dict(output.items()), **dict(input.items()), log_path=log[0])
 
 
 rule item_figures:
@@ -100,7 +100,7 @@ rule item_figures:
         roi=from_plan("roi", "item"),
         code=STAGES["figures"].version,
     run:
-        run_figures(dict(output.items()), **dict(input.items()), roi=params.roi, log_path=log[0])
+        in_worker(run_figures, dict(output.items()), **dict(input.items()), roi=params.roi, log_path=log[0])
 
 
 rule scene_figures:
@@ -125,4 +125,4 @@ rule scene_figures:
     params:
         code=STAGES["figures"].version,
     run:
-        run_figures(dict(output.items()), **dict(input.items()), log_path=log[0])
+        in_worker(run_figures, dict(output.items()), **dict(input.items()), log_path=log[0])

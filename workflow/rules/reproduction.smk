@@ -16,7 +16,8 @@ rule paper_comparison:
         runtime=runtime_settings,
         code=STAGES["comparison"].version,
     run:
-        run_paper_comparison(
+        in_worker(
+            run_paper_comparison,
             output[0],
             summary=input.summary,
             specimens=params.specimens,

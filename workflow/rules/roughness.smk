@@ -14,7 +14,7 @@ rule roughness_relation:
         specimens=from_plan("roughness_settings"),
         code=STAGES["roughness_relation"].version,
     run:
-        run_roughness_relation(output[0], specimens=params.specimens, log_path=log[0])
+        in_worker(run_roughness_relation, output[0], specimens=params.specimens, log_path=log[0])
 
 
 rule roughness_map:
@@ -35,7 +35,8 @@ rule roughness_map:
         scheduler=config["scheduler"],
         code=STAGES["roughness"].version,
     run:
-        run_roughness_map(
+        in_worker(
+            run_roughness_map,
             output[0],
             features=input.features,
             relation=input.relation,
@@ -66,4 +67,4 @@ rule roughness_figures:
     params:
         code=STAGES["figures"].version,
     run:
-        run_figures(dict(output.items()), **dict(input.items()), log_path=log[0])
+        in_worker(run_figures, dict(output.items()), **dict(input.items()), log_path=log[0])

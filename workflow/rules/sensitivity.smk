@@ -27,4 +27,4 @@ rule sensitivity:
         seed=config["sensitivity"]["seed"],
         code=STAGES["sensitivity"].version,
     run:
-        run_sensitivity(Path(output.store).parent, draws=params.draws, seed=params.seed, log_path=log[0])
+        in_worker(run_sensitivity, Path(output.store).parent, draws=params.draws, seed=params.seed, log_path=log[0])
