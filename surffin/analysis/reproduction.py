@@ -396,7 +396,7 @@ def _runtime_rows(runtime: Mapping[str, Mapping]) -> list[dict]:
                 "logs/benchmarks/*/" + scene + ".tsv",
                 _MAIN,
                 _MEASURED,
-                f"paper: ~5 min for {RUNTIME_VIEWS} views; here the jobs' wall times summed (each a new process)",
+                f"paper: ~5 min for {RUNTIME_VIEWS} views; here the wall times of its jobs (ingest to labels) summed",
             )
         )
     return rows

@@ -75,7 +75,7 @@ STAGES = {
         Stage("figures", write_figures, ("calibration", "training", "summary", "features", "labels"), "figures", 2),
         Stage("diagnostics", calibration_report, ("calibration", "views"), "diagnostics", 1),
         Stage("sensitivity", write_sensitivity, (), "sensitivity", 1),
-        Stage("comparison", write_comparison, ("summary", "diagnostics", "sensitivity"), "paper-comparison.md", 2),
+        Stage("comparison", write_comparison, ("summary", "diagnostics", "sensitivity"), "paper-comparison.md", 3),
     )
 }
 
