@@ -121,3 +121,13 @@ def test_view_must_be_one_chunk():
     r, theta = cube()
     with pytest.raises(ValueError, match="rechunk"):
         fit_scattering(r.chunk({"view": 2}), theta.chunk({"view": 2}))
+
+
+@pytest.mark.parametrize("n", [3.0, 5.0])
+def test_the_fit_stays_where_every_view_is_lit(n):
+    # found by test_noise_free_fit_is_exact: the views at 49 deg return 0.3 % of R0, and above
+    # n = 6.13 the model returns nothing there, a flat F(n) the fit used to stop on (n = 15.8)
+    theta = np.deg2rad(np.array([0.0, 49.0, 48.75]))
+    out = fit_scattering_arrays(scattering_model(theta, 1.0, n)[None], theta[None])
+    assert out["status"][0] == 0
+    np.testing.assert_allclose([out["R0"][0], out["n"][0]], [1.0, n], rtol=1e-6)

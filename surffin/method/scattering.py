@@ -130,10 +130,15 @@ def _derivatives(n, r, theta, w):
 def _solve_n(r, theta, w):
     """Minimise F(n) per pixel; returns n and a converged flag (pixel,)."""
     npix = r.shape[1]
+    # Above n_lit every view of the pixel that has data is lit (a theta < pi/2): beyond it the
+    # model returns nothing at the largest angle and F(n) is flat, a false minimum when the
+    # data there are small.
+    n_lit = _n_lit(np.where(w > 0, theta, 0.0).max(axis=0))
     cost = np.stack([_reduced_cost(np.full(npix, value), r, theta, w) for value in _START_GRID])
+    cost[_START_GRID[:, None] >= n_lit] = np.inf
     best = np.argmin(cost, axis=0)
     lo = np.where(best > 0, _START_GRID[np.maximum(best - 1, 0)], _N_MIN)
-    hi = _START_GRID[np.minimum(best + 1, _START_GRID.size - 1)]
+    hi = np.minimum(_START_GRID[np.minimum(best + 1, _START_GRID.size - 1)], n_lit)
     n = _START_GRID[best].copy()
     converged = np.zeros(npix, dtype=bool)
     # The working set shrinks to the unconverged pixels only once most have
@@ -161,8 +166,18 @@ def _solve_n(r, theta, w):
             idx, ra, ta, wa = idx[live], ra[:, live], ta[:, live], wa[:, live]
             na, lo, hi, live = na[live], lo[live], hi[live], live[live]
     n[idx] = na
-    at_bound = (n <= _START_GRID[0]) | (n >= N_MAX)
+    at_bound = (n <= _START_GRID[0]) | (n >= np.minimum(N_MAX, n_lit))
     return n, converged & ~at_bound
+
+
+def _n_lit(theta_max):
+    """Return the largest n at which a view at ``theta_max`` (radians) is still lit, just below it; N_MAX at most.
+
+    (2 - 1/n) theta < pi/2 holds for every n when theta_max <= pi/4, else for n < 1 / (2 - pi / (2 theta_max)).
+    """
+    with np.errstate(divide="ignore"):
+        limit = 1.0 / (2.0 - np.pi / (2.0 * np.maximum(theta_max, np.pi / 4)))
+    return np.minimum(np.where(theta_max > np.pi / 4, limit * (1.0 - 1e-9), N_MAX), N_MAX)
 
 
 def _fit_pixels(r, theta, w, n_views):

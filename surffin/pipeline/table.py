@@ -66,15 +66,15 @@ STAGES = {
         _chain("aoi", 2),
         _chain("reflectance", 2),
         _chain("registration", 1),
-        _chain("features", 3),
+        _chain("features", 4),
         Stage("training", training_set, ("features",), "training.zarr", 3),
         Stage("labels", labels_stage, ("features", "training"), "labels/{scene}.zarr", 3),
         Stage("summary", summarise, ("features", "labels", "truth"), "summary.json", 2),
         Stage("roughness_relation", roughness_relation, ("features",), "roughness/relation.json", 1),
         Stage("roughness", roughness_stage, ("features",), "roughness/{scene}.zarr", 1),
         Stage("figures", write_figures, ("calibration", "training", "summary", "features", "labels"), "figures", 2),
-        Stage("diagnostics", calibration_report, ("calibration", "views"), "diagnostics", 1),
-        Stage("sensitivity", write_sensitivity, (), "sensitivity", 1),
+        Stage("diagnostics", calibration_report, ("calibration", "views"), "diagnostics", 2),
+        Stage("sensitivity", write_sensitivity, (), "sensitivity", 2),
         Stage("comparison", write_comparison, ("summary", "diagnostics", "sensitivity"), "paper-comparison.md", 3),
     )
 }
