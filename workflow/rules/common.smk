@@ -7,6 +7,7 @@ from surffin.analysis.sensitivity import OUTPUTS as SENSITIVITY_FILES
 from surffin.errors import SurffinError
 from surffin.io.campaign import NAME_PATTERN
 from surffin.method.stages import aoi_stage, features_stage, labels_stage, reflectance_stage, registration_stage
+from surffin.pipeline.analyses import run_calibration_diagnostics, run_figures, run_paper_comparison, run_sensitivity
 from surffin.pipeline.jobs import in_worker
 from surffin.pipeline.parameters import aoi_parameters, calibration_parameters, label_parameters
 from surffin.pipeline.run import (
@@ -21,7 +22,6 @@ from surffin.pipeline.run import (
 )
 from surffin.pipeline.table import CHAIN, STAGES, input_paths, output_path
 from surffin.pipeline.workflow import Plan
-from surffin.pipeline.analyses import run_calibration_diagnostics, run_figures, run_paper_comparison, run_sensitivity
 
 validate(config, "../schemas/config.schema.yaml")
 
