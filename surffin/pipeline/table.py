@@ -98,7 +98,7 @@ def stage_of(function: Callable) -> Stage:
 
 
 #: The stage whose store an item stage's input of that name is.
-_STORE_STAGE = {"ingest": "ingest", "aoi": "aoi", "reflectance": "reflectance", "registered": "registration"}
+_STORE_STAGE = {"ingest": "ingest", **{step.output: step.name for step in ITEM_CHAIN}}
 
 
 def output_path(stage: str, processed: str, name: str | None = None) -> str:
