@@ -84,19 +84,6 @@ def row(result: dict) -> dict:
     }
 
 
-def evaluate(directory: Path, config: dict) -> dict:
-    """:func:`~surffin.analysis.evaluation.evaluate_campaign` with the stage parameters of ``config``."""
-    return evaluate_campaign(
-        directory,
-        calibration_params=parameters.calibration_parameters(config),
-        aoi_params=parameters.aoi_parameters(config),
-        feature_params=parameters.feature_parameters(config),
-        label_params=parameters.label_parameters(config),
-        method=config["registration"]["method"],
-        max_per_class=config["classify"]["max_training_samples"],
-    )
-
-
 def line(label: str, values: dict) -> str:
     """Format one table line: ``label``, then the value of each of :data:`ROWS`."""
     return f"{label:26s}" + "".join(f"{values[key]:10.2f}" for key in ROWS)
@@ -127,7 +114,7 @@ def main() -> None:
             results[name] = []
             for seed in args.seeds:
                 start = time.perf_counter()
-                result = evaluate(render(name, seed, args.workdir), config)
+                result = evaluate_campaign(render(name, seed, args.workdir), **parameters.evaluation_parameters(config))
                 results[name].append(result)
                 reasons = {scene: value["reasons"] for scene, value in result["scenes"].items()}
                 label = f"{name} s{seed} ({time.perf_counter() - start:.0f} s)"

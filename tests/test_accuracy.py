@@ -30,16 +30,7 @@ def _focal(factor: float):
 
 def evaluate(directory) -> dict:
     """:func:`evaluate_campaign` with the workflow's default configuration."""
-    config = parameters.read_config()
-    return evaluate_campaign(
-        directory,
-        calibration_params=parameters.calibration_parameters(config),
-        aoi_params=parameters.aoi_parameters(config),
-        feature_params=parameters.feature_parameters(config),
-        label_params=parameters.label_parameters(config),
-        method=config["registration"]["method"],
-        max_per_class=config["classify"]["max_training_samples"],
-    )
+    return evaluate_campaign(directory, **parameters.evaluation_parameters(parameters.read_config()))
 
 
 @pytest.fixture(scope="module")

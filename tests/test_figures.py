@@ -304,6 +304,19 @@ def stores(calibration, tmp_path):
     }
 
 
+#: The files of the campaign-wide figure rules (calibration and classification).
+CAMPAIGN_FILES = {
+    "calibration_fit.png",
+    "calibration_r2.png",
+    "calibration_parameters.html",
+    "calibration_parameters.csv",
+    "wall_reflectance.png",
+    "feature_space.png",
+    "accuracy.html",
+    "accuracy.csv",
+}
+
+
 def test_run_figures_writes_every_requested_file(stores, tmp_path):
     out = tmp_path / "figures"
     outputs = {
@@ -320,14 +333,7 @@ def test_run_figures_writes_every_requested_file(stores, tmp_path):
     assert set(outputs) == set(FIGURE_KINDS)
     written = run_figures(outputs, roi={"y": [6, 18], "x": [8, 24]}, log_path=tmp_path / "figures.log", **stores)
     expected = {
-        "calibration_fit.png",
-        "calibration_r2.png",
-        "calibration_parameters.html",
-        "calibration_parameters.csv",
-        "wall_reflectance.png",
-        "feature_space.png",
-        "accuracy.html",
-        "accuracy.csv",
+        *CAMPAIGN_FILES,
         "features/S2.png",
         "labels/T1.png",
         "roughness/T1.png",
@@ -407,14 +413,7 @@ def test_snakemake_report_holds_every_figure(tiny_run, snakemake, planned_jobs, 
     figures = done / "processed" / "figures"
     camp = surffin.read_campaign(done / "raw")
     expected = {
-        "calibration_fit.png",
-        "calibration_r2.png",
-        "calibration_parameters.html",
-        "calibration_parameters.csv",
-        "wall_reflectance.png",
-        "feature_space.png",
-        "accuracy.html",
-        "accuracy.csv",
+        *CAMPAIGN_FILES,
         "calibration_correlation.png",
         "calibration_repeatability.png",
         *(f"features/{name}.png" for name in camp.items),

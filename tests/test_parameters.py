@@ -6,6 +6,7 @@ import math
 import pytest
 import yaml
 
+from surffin.analysis.evaluation import evaluate_campaign
 from surffin.method.calibration import calibrate
 from surffin.method.stages import aoi_stage, features_stage, labels_stage
 from surffin.pipeline import parameters
@@ -20,6 +21,7 @@ SCHEMA = parameters.DEFAULT_CONFIG.parent.parent / "workflow" / "schemas" / "con
         (parameters.aoi_parameters, aoi_stage),
         (parameters.feature_parameters, features_stage),
         (parameters.label_parameters, labels_stage),
+        (parameters.evaluation_parameters, evaluate_campaign),
     ],
 )
 def test_every_keyword_is_a_parameter_of_its_function(mapping, function):

@@ -121,8 +121,8 @@ def evaluate_campaign(
 ) -> dict:
     """Process a synthetic campaign in this process and score it against its truth.
 
-    The workflow's parameters are those of :mod:`surffin.pipeline.parameters`
-    for its configuration: ``calibration_parameters(config)``, and so on.
+    The workflow's parameters for a configuration are
+    :func:`surffin.pipeline.parameters.evaluation_parameters`.
 
     Parameters
     ----------

@@ -24,6 +24,7 @@ __all__ = [
     "aoi_parameters",
     "feature_parameters",
     "label_parameters",
+    "evaluation_parameters",
 ]
 
 #: The repository's configuration file (present in a source checkout).
@@ -95,3 +96,15 @@ def feature_parameters(config: Mapping) -> dict:
 def label_parameters(config: Mapping) -> dict:
     """Keyword arguments of :func:`surffin.method.stages.labels_stage`."""
     return _keywords(config, "labels")
+
+
+def evaluation_parameters(config: Mapping) -> dict:
+    """Return the keyword arguments of :func:`surffin.analysis.evaluation.evaluate_campaign` that ``config`` sets."""
+    return {
+        "calibration_params": calibration_parameters(config),
+        "aoi_params": aoi_parameters(config),
+        "feature_params": feature_parameters(config),
+        "label_params": label_parameters(config),
+        "method": config["registration"]["method"],
+        "max_per_class": config["classify"]["max_training_samples"],
+    }

@@ -228,15 +228,7 @@ def run_summary(
 ) -> Path:
     """Write ``summary.json``: per-item feature statistics, per-scene class fractions and accuracy.
 
-    Parameters
-    ----------
-    features : mapping
-        Item name -> ``{"store": features store, "roi": {"y", "x"} or None}``; the
-        statistics cover the roi where there is one, else the whole image.
-    labels : mapping
-        Scene name -> labels store.
-    truth : mapping
-        Scene name -> ``{"path": truth.npz, "width": int, "height": int}`` for scenes with truth.
+    ``features``, ``labels`` and ``truth`` are those of :func:`surffin.analysis.summary.summarise`.
     """
     from surffin.analysis.summary import summarise
 
