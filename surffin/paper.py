@@ -10,6 +10,8 @@ paper does not state (surffin fits in the gauge E = 1).
 """
 
 __all__ = [
+    "CITATION",
+    "DOI",
     "MEAN_R2",
     "VARIABILITY_PERCENT",
     "CORRELATION",
@@ -24,6 +26,12 @@ __all__ = [
     "RUNTIME_VIEWS",
 ]
 
+#: The paper's DOI, and the reference every store gives in its CF attribute ``references``.
+DOI = "10.1016/j.autcon.2021.103799"
+CITATION = (
+    "Frangez V., Salido-Monzú D., Wieser A. (2021): Surface finish classification using depth camera data. "
+    f"Automation in Construction 129, 103799. https://doi.org/{DOI}"
+)
 #: Mean R^2 of the calibration fit over the image (section 3.3).
 MEAN_R2 = 0.98
 #: Variability in % of each calibration coefficient over the whole image (section 3.3, Table 2).

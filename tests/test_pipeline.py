@@ -16,6 +16,7 @@ import pytest
 import xarray as xr
 
 import surffin
+from surffin.io.store import open_store
 from surffin.method.features import variability
 from surffin.method.stages import ITEM_CHAIN, aoi_stage, process_item
 from surffin.pipeline.jobs import dask_scheduler, in_worker, logging_to
@@ -53,15 +54,15 @@ def chain_jobs(camp, calibration, item, folder):
 def test_the_jobs_write_what_the_chain_in_memory_computes(campaign, tmp_path, item):
     camp, calibration = campaign
     stores = chain_jobs(camp, calibration, item, tmp_path)
-    ingest = xr.open_zarr(stores["ingest"]).load()
-    in_memory = process_item(ingest, xr.open_zarr(calibration).load(), roi=camp.items[item].roi, **PARAMS)
+    ingest = open_store(stores["ingest"]).load()
+    in_memory = process_item(ingest, open_store(calibration).load(), roi=camp.items[item].roi, **PARAMS)
     for step in ITEM_CHAIN:
-        written = xr.open_zarr(stores[step.output]).load()
+        written = open_store(stores[step.output]).load()
         xr.testing.assert_allclose(written.drop_attrs(), in_memory[step.output].drop_attrs())
         assert written.attrs["surffin_stage"] == step.name
         assert written.attrs["surffin_code_version"] == STAGES[step.name].version
-    assert xr.open_zarr(stores["features"])["R0"].notnull().mean() > 0.5
-    assert xr.open_zarr(stores["ingest"]).attrs["surffin_code_version"] == STAGES["ingest"].version
+    assert open_store(stores["features"])["R0"].notnull().mean() > 0.5
+    assert open_store(stores["ingest"]).attrs["surffin_code_version"] == STAGES["ingest"].version
 
 
 def test_run_stage_refuses_what_is_no_stage_and_wrong_stores(campaign, tmp_path):

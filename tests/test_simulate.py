@@ -6,12 +6,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.ndimage
-import xarray as xr
 import yaml
 
 import surffin
 from surffin.cli import main
 from surffin.errors import CampaignError
+from surffin.io.store import open_store
 from surffin.simulate import (
     FORMATS,
     PRESETS,
@@ -56,7 +56,7 @@ def clean(tmp_path_factory):
 
 
 def truth_of(truth, item):
-    return xr.open_zarr(truth / f"{item}.zarr").compute()
+    return open_store(truth / f"{item}.zarr").compute()
 
 
 def read(campaign_dir, item, index):
@@ -205,7 +205,7 @@ def instrument_function(coef, distance, aoi):
 
 @pytest.mark.parametrize("item", ["S3", "T1"])
 def test_noise_free_intensity_is_scale_k_f_R(clean, item):
-    instrument = xr.open_zarr(clean[1] / "instrument.zarr").compute()
+    instrument = open_store(clean[1] / "instrument.zarr").compute()
     truth = truth_of(clean[1], item)
     view = read(clean[0], item, 0)
     valid = view.valid
@@ -223,7 +223,7 @@ def test_noise_free_intensity_is_scale_k_f_R(clean, item):
 
 
 def test_instrument_truth_gauge_and_variability(clean):
-    instrument = xr.open_zarr(clean[1] / "instrument.zarr").compute()
+    instrument = open_store(clean[1] / "instrument.zarr").compute()
     coef, raw = instrument.coef.values, instrument.coef_raw.values
     assert instrument.attrs["scale_k"] == pytest.approx(1 / TINY.wall.R0)
     np.testing.assert_array_equal(coef[4], 1.0)
@@ -242,7 +242,7 @@ def test_noise_levels(noisy):
     assert error.std() == pytest.approx(TINY.depth_noise, rel=0.05)
     assert abs(error.mean()) < 4 * TINY.depth_noise / np.sqrt(error.size)
     # intensity: relative noise between the configured bounds
-    instrument = xr.open_zarr(noisy[1] / "instrument.zarr").compute()
+    instrument = open_store(noisy[1] / "instrument.zarr").compute()
     R = truth.R0.values * np.cos((2 - 1 / truth.n.values) * truth.aoi.values) ** truth.n.values
     signal = (
         instrument.attrs["scale_k"]

@@ -15,6 +15,8 @@ import xarray as xr
 import yaml
 
 import surffin
+from surffin.io.store import open_store
+from surffin.paper import DOI
 from surffin.pipeline.table import STAGES
 
 REPO = Path(__file__).resolve().parents[1]
@@ -45,15 +47,20 @@ def fresh(fresh_run):
 
 
 @pytest.mark.slow  # a full snakemake run of the tiny campaign
-def test_every_store_follows_the_contract(done):
+def test_every_store_follows_the_contract(done, tmp_path):
     camp = surffin.read_campaign(done / "raw")
     processed = done / "processed"
     stores = [path for path in processed.rglob("*.zarr") if (path / "zarr.json").is_file()]
     assert len(stores) == 5 * len(camp.items) + 4 + len(camp.scenes) * 2  # + calibrations, training, sensitivity
-    for path in stores:  # each records the code version the stage table gives its stage
-        attrs = xr.open_zarr(path).attrs
+    for index, path in enumerate(stores):  # each records the code version the stage table gives its stage
+        attrs = open_store(path).attrs
         assert attrs["surffin_code_version"] == STAGES[attrs["surffin_stage"]].version, path
-    cal = xr.open_zarr(processed / "calibration.zarr")
+        assert attrs["Conventions"].startswith("CF-") and DOI in attrs["references"], path
+        # plain xarray opens it, and netCDF takes it as it is (nested attrs are JSON text)
+        plain = xr.open_zarr(path)
+        plain.to_netcdf(tmp_path / f"{index}.nc", engine="scipy")
+        xr.testing.assert_equal(xr.open_dataset(tmp_path / f"{index}.nc", engine="scipy").load(), plain.load())
+    cal = open_store(processed / "calibration.zarr")
     assert list(cal["term"].values) == ["A", "B", "C", "D", "E"]
     assert cal["coef"].dims == ("term", "y", "x") and cal.sizes["y"] == camp.camera.height
     assert cal.attrs["scale_k"] > 0 and cal.attrs["reference_reflectance"] == pytest.approx(0.6)
@@ -66,16 +73,16 @@ def test_every_store_follows_the_contract(done):
             "features": {"R0", "n", "variability", "R0_uncertainty", "n_uncertainty"},
         }
         for stage, variables in expected.items():
-            ds = xr.open_zarr(processed / stage / f"{name}.zarr")
+            ds = open_store(processed / stage / f"{name}.zarr")
             assert variables <= set(ds.data_vars), (stage, name)
             assert ds.attrs["surffin_version"] == surffin.__version__
             assert ds["y"].values[0] == camp.crop.y[0] and ds["x"].values[-1] == camp.crop.x[1] - 1
             for var in variables:
                 assert "long_name" in ds[var].attrs, (stage, var)
-        assert list(xr.open_zarr(processed / "aoi" / f"{name}.zarr")["view"].values) == list(item.view_stems)
-        assert xr.open_zarr(processed / "aoi" / f"{name}.zarr")["aoi"].attrs["units"] == "rad"
+        assert list(open_store(processed / "aoi" / f"{name}.zarr")["view"].values) == list(item.view_stems)
+        assert open_store(processed / "aoi" / f"{name}.zarr")["aoi"].attrs["units"] == "rad"
         assert (done / "logs" / "features" / f"{name}.log").is_file()
-        features = xr.open_zarr(processed / "features" / f"{name}.zarr")
+        features = open_store(processed / "features" / f"{name}.zarr")
         for var in ("R0_uncertainty", "n_uncertainty"):
             assert features[var].attrs["units"] == "1"
             uncertainty = features[var].values
@@ -83,15 +90,18 @@ def test_every_store_follows_the_contract(done):
             assert np.isfinite(uncertainty).mean() > 0.5
         assert "uncertainty_propagation" in features.attrs
         assert features.attrs["variability_noise_corrected"] == 1
-    training = xr.open_zarr(processed / "training.zarr")
+        # computed from the camera's float32 data, stored as float32
+        assert {features[var].dtype for var in ("R0", "n", "variability", "R0_uncertainty")} == {np.dtype("f4")}
+    training = open_store(processed / "training.zarr")
     assert list(training["feature"].values) == ["R0", "n", "variability"]
     assert set(training["class"].values) == {"S1", "S2", "S3", "S4"}
     assert training.attrs["variability_noise_corrected"] == 1
-    labels = xr.open_zarr(processed / "labels" / "T1.zarr")
+    labels = open_store(processed / "labels" / "T1.zarr")
     for var in ("label", "label_filtered"):
         assert labels[var].dtype == np.int16
         assert labels[var].attrs["flag_values"] == [0, 1, 2, 3]
         assert labels[var].attrs["flag_meanings"] == "S1 S2 S3 S4"
+        assert (labels[var].attrs["valid_min"], labels[var].attrs["valid_max"]) == (-1, 3)  # -1: unclassified
         # every unclassified pixel is counted under one reason, before and after the filter
         assert sum(labels[var].attrs["unclassified"].values()) == int((labels[var] == -1).sum())
     assert labels.attrs["surffin_parameters"]["min_posterior"] == 0.5
@@ -115,7 +125,7 @@ def test_every_store_follows_the_contract(done):
     diagnostics = json.loads((processed / "diagnostics" / "calibration.json").read_text())
     assert diagnostics["repeatability"]["available"]  # the tiny preset renders a repeat calibration set
     assert 0 < diagnostics["calibrations"]["first"]["fit"]["mean_r2"] <= 1
-    rough = xr.open_zarr(processed / "roughness" / "T1.zarr")
+    rough = open_store(processed / "roughness" / "T1.zarr")
     assert rough["roughness"].attrs["units"] == "mm" and "indicative" in rough.attrs["comment"]
     assert rough.attrs["surffin_stage"] == "roughness"
 

@@ -22,6 +22,7 @@ import xarray as xr
 
 from surffin.io.campaign import read_campaign, read_truth
 from surffin.io.ingest import ingest_item
+from surffin.io.store import open_store
 from surffin.method.calibration import calibrate, instrument_function, reflectance
 from surffin.method.classify import score, training_set
 from surffin.method.registration import register
@@ -167,7 +168,7 @@ def evaluate_campaign(
     truth_dir = Path(truth) if truth is not None else Path(f"{directory.resolve()}-truth")
     camp = read_campaign(directory)
     calibration = calibrate(camp, **calibration_params)
-    instrument = xr.open_zarr(truth_dir / "instrument.zarr").compute()
+    instrument = open_store(truth_dir / "instrument.zarr").compute()
     features, ceiling, items, scene_truths = {}, {}, {}, {}
     pooled: dict[str, list] = {"R0": [], "n": [], "ceiling_R0": [], "ceiling_n": []}
     for name, item in camp.items.items():
@@ -180,7 +181,7 @@ def evaluate_campaign(
             **aoi_params,
             **feature_params,
         )
-        item_truth = xr.open_zarr(truth_dir / f"{name}.zarr").compute()
+        item_truth = open_store(truth_dir / f"{name}.zarr").compute()
         if name in camp.scenes:
             scene_truths[name] = item_truth
         features[name] = chain["features"]

@@ -5,10 +5,17 @@ and renamed onto its final path only once everything, consolidated metadata
 included, is on disk. Anything at a store's final path is therefore complete;
 leftovers of a crashed or killed run carry names no reader mistakes for a store
 and are removed by the next write of the same store.
+
+Attributes netCDF cannot hold (nested dicts, lists of strings, booleans, None)
+are stored as JSON strings and named in the attribute ``surffin_json_attrs``;
+:func:`open_store` decodes them, so ``xr.open_zarr(store).to_netcdf(path)``
+works for every store and surffin still reads the values it wrote.
 """
 
 from __future__ import annotations
 
+import json
+import numbers
 import os
 import shutil
 import uuid
@@ -21,13 +28,28 @@ import xarray as xr
 
 from surffin._version import __version__
 from surffin.errors import StoreError
+from surffin.paper import CITATION
 
-__all__ = ["DEFAULT_CHUNKS", "write_store", "open_store", "provenance", "clean_leftovers"]
+__all__ = [
+    "DEFAULT_CHUNKS",
+    "JSON_ATTRS",
+    "write_store",
+    "open_store",
+    "provenance",
+    "clean_leftovers",
+    "encode_attrs",
+    "decode_attrs",
+]
 
 #: Default dask/zarr chunk sizes over the image dimensions (a camera frame in one or two chunks:
 #: fewer, larger tasks cost less overhead: an item's chain ran 1.13x faster than with 256, measured
 #: with benchmarks/bench_chunks.py); ``view`` is never split.
 DEFAULT_CHUNKS = {"y": 512, "x": 512}
+
+#: The attribute naming (as a JSON list) the attributes stored as JSON strings.
+JSON_ATTRS = "surffin_json_attrs"
+#: The CF conventions the stores follow.
+CONVENTIONS = "CF-1.10"
 
 _PARTIAL = ".partial-"
 _RETIRED = ".retired-"
@@ -53,15 +75,73 @@ def provenance(
     -------
     dict
         ``surffin_version``, ``surffin_stage``, ``surffin_parameters``, ``surffin_inputs``
-        and, when given, ``surffin_code_version``.
+        and, when given, ``surffin_code_version``; CF's ``Conventions``, ``title``,
+        ``references`` (the method's paper) and ``history`` (what made it; no time stamp, so
+        that the same inputs give identical stores: the files' times say when).
     """
     attrs = {
+        "Conventions": CONVENTIONS,
+        "title": f"surffin {stage} store",
+        "references": CITATION,
+        "history": f"surffin {__version__}, stage {stage}",
         "surffin_version": __version__,
         "surffin_stage": stage,
         "surffin_parameters": dict(parameters or {}),
         "surffin_inputs": dict(inputs or {}),
     }
     return attrs if version is None else attrs | {"surffin_code_version": version}
+
+
+def _portable(value) -> bool:
+    # What netCDF-3 and netCDF-4 both hold: a string, a real number or a non-empty 1-D numeric array.
+    if isinstance(value, (bool, np.bool_)):
+        return False
+    if isinstance(value, (str, numbers.Real)):
+        return True
+    if isinstance(value, np.ndarray):
+        return value.ndim == 1 and value.size > 0 and value.dtype.kind in "iuf"
+    if isinstance(value, (list, tuple)):
+        return len(value) > 0 and all(
+            isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) for v in value
+        )
+    return False
+
+
+def _plain(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"attribute value {value!r} of type {type(value).__name__} is not JSON-serialisable")
+
+
+def encode_attrs(attrs: Mapping) -> dict:
+    """Attributes as netCDF holds them: each value it cannot hold as a JSON string, named in ``surffin_json_attrs``.
+
+    Parameters
+    ----------
+    attrs : mapping
+        Attributes of a Dataset or variable; values JSON-serialisable (numpy
+        scalars and arrays included).
+
+    Returns
+    -------
+    dict
+        The attributes to write; :func:`decode_attrs` inverts it.
+    """
+    encoded = {key: value for key, value in attrs.items() if key != JSON_ATTRS}
+    as_json = sorted(key for key, value in encoded.items() if not _portable(value))
+    for key in as_json:
+        encoded[key] = json.dumps(encoded[key], default=_plain)
+    return encoded | {JSON_ATTRS: json.dumps(as_json)} if as_json else encoded
+
+
+def decode_attrs(attrs: Mapping) -> dict:
+    """Invert :func:`encode_attrs`: the attributes named in ``surffin_json_attrs`` parsed from JSON."""
+    decoded = {key: value for key, value in attrs.items() if key != JSON_ATTRS}
+    for key in json.loads(attrs.get(JSON_ATTRS, "[]")):
+        decoded[key] = json.loads(decoded[key])
+    return decoded
 
 
 def _leftovers(path: Path) -> list[Path]:
@@ -134,7 +214,10 @@ def write_store(
     path.parent.mkdir(parents=True, exist_ok=True)
     clean_leftovers(path)
     ds = ds.drop_encoding().chunk(_chunking(ds, DEFAULT_CHUNKS if chunks is None else chunks))
-    ds = _strings_as_objects(ds)
+    ds = _strings_as_objects(ds).copy(deep=False)
+    ds.attrs = encode_attrs(ds.attrs)
+    for variable in ds.variables.values():
+        variable.attrs = encode_attrs(variable.attrs)
     partial = path.parent / f".{path.name}{_PARTIAL}{uuid.uuid4().hex[:12]}"
     try:
         with warnings.catch_warnings():
@@ -179,6 +262,9 @@ def open_store(path: str | os.PathLike, *, stage: str | None = None, chunks="aut
         ds = xr.open_zarr(path, consolidated=True, chunks={} if chunks == "auto" else chunks)
     except Exception as exc:  # zarr and xarray raise many types on damaged stores
         raise StoreError(f"{path}: cannot open as a zarr store: {exc}") from exc
+    ds.attrs = decode_attrs(ds.attrs)
+    for variable in ds.variables.values():
+        variable.attrs = decode_attrs(variable.attrs)
     made_by = ds.attrs.get("surffin_stage")
     if stage is not None and made_by != stage:
         raise StoreError(f"{path}: expected a store made by stage {stage!r}, found one made by {made_by!r}")

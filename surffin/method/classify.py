@@ -261,6 +261,8 @@ def _label_attrs(classes: Sequence[str]) -> dict:
         "long_name": "surface finish class",
         "flag_values": list(range(len(classes))),
         "flag_meanings": " ".join(classes),
+        "valid_min": UNCLASSIFIED,
+        "valid_max": len(classes) - 1,
         "comment": (
             f"{UNCLASSIFIED} = unclassified: fewer than two features, unlike every class, or between classes "
             "(counts by reason in attr unclassified)"

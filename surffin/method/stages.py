@@ -14,6 +14,7 @@ import inspect
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
+import numpy as np
 import xarray as xr
 
 from surffin.grid import Roi
@@ -51,6 +52,12 @@ def _item_attrs(ingest: xr.Dataset) -> dict:
     return {key: ingest.attrs[key] for key in keys if key in ingest.attrs}
 
 
+def _single(ds: xr.Dataset) -> xr.Dataset:
+    # The camera's intensity and points are float32: what is computed from them is no more
+    # precise than that, and float64 would only double the stores (kernels compute in float64).
+    return ds.assign({name: var.astype(np.float32) for name, var in ds.data_vars.items() if var.dtype == np.float64})
+
+
 def aoi_stage(
     ingest: xr.Dataset,
     *,
@@ -75,7 +82,7 @@ def reflectance_stage(ingest: xr.Dataset, aoi: xr.Dataset, calibration: xr.Datas
     ds = xr.Dataset({"reflectance": r.where(ingest["valid"])}, attrs=_item_attrs(ingest))
     if "noise_variance" in calibration:
         ds["reflectance_noise"] = relative_noise(ingest["intensity"], calibration).where(ingest["valid"])
-    return ds
+    return _single(ds)
 
 
 def registration_stage(
@@ -89,7 +96,7 @@ def registration_stage(
     both = xr.Dataset({"reflectance": reflectance["reflectance"], "aoi": aoi["aoi"]})
     registered = register(both.compute(), maps)
     registered.attrs = {**registered.attrs, **_item_attrs(ingest)}
-    return registered
+    return _single(registered)
 
 
 def features_stage(
@@ -149,7 +156,7 @@ def features_stage(
         "variability_views": [str(v) for v in order],
         NOISE_CORRECTED: int(noise is not None),
     }
-    return ds
+    return _single(ds)
 
 
 def labels_stage(
@@ -184,7 +191,7 @@ def roughness_stage(features: xr.Dataset, *, relation: Mapping) -> xr.Dataset:
     """Map the indicative roughness of an item from its smoothed n (:mod:`surffin.method.roughness`)."""
     ds = roughness_map(features["n"], relation)
     ds.attrs = {**_item_attrs(features), **ds.attrs}
-    return ds
+    return _single(ds)
 
 
 @dataclass(frozen=True)

@@ -61,20 +61,20 @@ def _chain(name: str, version: int) -> Stage:
 STAGES = {
     stage.name: stage
     for stage in (
-        Stage("calibration", calibrate, ("views",), "calibration.zarr", 3),
-        Stage("ingest", ingest_item, ("views",), "ingest/{item}.zarr", 1),
-        _chain("aoi", 2),
-        _chain("reflectance", 2),
-        _chain("registration", 1),
-        _chain("features", 4),
-        Stage("training", training_set, ("features",), "training.zarr", 3),
-        Stage("labels", labels_stage, ("features", "training"), "labels/{scene}.zarr", 3),
+        Stage("calibration", calibrate, ("views",), "calibration.zarr", 4),
+        Stage("ingest", ingest_item, ("views",), "ingest/{item}.zarr", 2),
+        _chain("aoi", 3),
+        _chain("reflectance", 3),
+        _chain("registration", 2),
+        _chain("features", 5),
+        Stage("training", training_set, ("features",), "training.zarr", 4),
+        Stage("labels", labels_stage, ("features", "training"), "labels/{scene}.zarr", 4),
         Stage("summary", summarise, ("features", "labels", "truth"), "summary.json", 2),
         Stage("roughness_relation", roughness_relation, ("features",), "roughness/relation.json", 1),
-        Stage("roughness", roughness_stage, ("features",), "roughness/{scene}.zarr", 1),
+        Stage("roughness", roughness_stage, ("features",), "roughness/{scene}.zarr", 2),
         Stage("figures", write_figures, ("calibration", "training", "summary", "features", "labels"), "figures", 2),
         Stage("diagnostics", calibration_report, ("calibration", "views"), "diagnostics", 2),
-        Stage("sensitivity", write_sensitivity, (), "sensitivity", 2),
+        Stage("sensitivity", write_sensitivity, (), "sensitivity", 3),
         Stage("comparison", write_comparison, ("summary", "diagnostics", "sensitivity"), "paper-comparison.md", 3),
     )
 }
