@@ -1,4 +1,4 @@
-"""The ``surffin`` command: simulate campaigns, check them, look into stores, run the sensitivity analysis."""
+"""The ``surffin`` command: simulate and check campaigns, inspect stores, export results, run the sensitivity study."""
 
 from __future__ import annotations
 
@@ -38,6 +38,14 @@ def _inspect(args: argparse.Namespace) -> int:
     for key in ("surffin_version", "surffin_stage", "surffin_code_version", "surffin_parameters", "surffin_inputs"):
         if key in ds.attrs:
             print(f"{key}: {json.dumps(ds.attrs[key], indent=2, default=str)}")
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    from surffin.report.export import export_results
+
+    written = export_results(args.processed, args.out, calibration=args.calibration)
+    print(f"{args.out}: {len(written)} files written")
     return 0
 
 
@@ -105,6 +113,14 @@ def _parser() -> argparse.ArgumentParser:
     inspect = commands.add_parser("inspect", help="print what a processed store holds and how it was made")
     inspect.add_argument("store", help="path of a .zarr store")
     inspect.set_defaults(run=_inspect)
+
+    export = commands.add_parser(
+        "export", help="write a processed folder's results as label PNGs, class areas (CSV), PLY clouds and PDF reports"
+    )
+    export.add_argument("processed", help="processed folder of a complete run")
+    export.add_argument("out", help="output folder")
+    export.add_argument("--calibration", help="calibration store the reports name (default PROCESSED/calibration.zarr)")
+    export.set_defaults(run=_export)
 
     sensitivity = commands.add_parser(
         "sensitivity", help="Monte Carlo of the scattering fit's sensitivity to noise (paper section 4)"

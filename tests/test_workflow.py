@@ -31,6 +31,7 @@ DOWNSTREAM = {
     "all": 1,
     "calibration_diagnostics": 1,
     "paper_comparison": 1,
+    "export": 1,
     **ROUGHNESS,
 }
 
@@ -149,6 +150,7 @@ def test_smoothing_change_reruns_features_and_below_only(done, planned_jobs):
         **ROUGHNESS,
         "calibration_diagnostics": 1,
         "paper_comparison": 1,
+        "export": 1,
     }
 
 
@@ -163,6 +165,7 @@ def test_aoi_window_change_reruns_from_aoi_down(done, planned_jobs):
         *ROUGHNESS,
         "calibration_diagnostics",
         "paper_comparison",
+        "export",
     }
     assert jobs["aoi"] == 5
 
@@ -183,6 +186,7 @@ def test_code_version_bump_reruns_that_stage(done, planned_jobs):
         "classification_figures": 1,
         "scene_figures": 1,
         "paper_comparison": 1,
+        "export": 1,
         "all": 1,
     }
 

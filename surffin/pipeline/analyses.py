@@ -17,7 +17,7 @@ from surffin.grid import Roi
 from surffin.pipeline.jobs import logging_to
 from surffin.pipeline.table import STAGES
 
-__all__ = ["run_calibration_diagnostics", "run_sensitivity", "run_paper_comparison", "run_figures"]
+__all__ = ["run_calibration_diagnostics", "run_sensitivity", "run_paper_comparison", "run_figures", "run_export"]
 
 
 def run_calibration_diagnostics(
@@ -193,3 +193,20 @@ def run_figures(
     }
     with logging_to(log_path):
         return write_figures(outputs, inputs, roi=roi)
+
+
+def run_export(
+    out: str | os.PathLike,
+    *,
+    training: str | os.PathLike,
+    calibration: str | os.PathLike | None = None,
+    log_path: str | os.PathLike | None = None,
+) -> list[Path]:
+    """Export the results of the processed folder holding ``training`` (:func:`surffin.report.export.export_results`).
+
+    The workflow names the training store, not the folder, so that the job's inputs say what it reads.
+    """
+    from surffin.report.export import export_results
+
+    with logging_to(log_path):
+        return export_results(Path(training).parent, out, calibration=calibration)

@@ -23,6 +23,7 @@ from surffin.method.calibration import calibrate
 from surffin.method.classify import training_set
 from surffin.method.roughness import roughness_relation
 from surffin.method.stages import ITEM_CHAIN, labels_stage, roughness_stage
+from surffin.report.export import export_results
 from surffin.report.figures import write_figures
 
 __all__ = ["Stage", "STAGES", "CHAIN", "stage_of", "output_path", "input_paths"]
@@ -72,6 +73,7 @@ STAGES = {
         Stage("summary", summarise, ("features", "labels", "truth"), "summary.json", 2),
         Stage("roughness_relation", roughness_relation, ("features",), "roughness/relation.json", 1),
         Stage("roughness", roughness_stage, ("features",), "roughness/{scene}.zarr", 2),
+        Stage("export", export_results, ("features", "labels", "training", "summary"), "export", 1),
         Stage("figures", write_figures, ("calibration", "training", "summary", "features", "labels"), "figures", 2),
         Stage("diagnostics", calibration_report, ("calibration", "views"), "diagnostics", 2),
         Stage("sensitivity", write_sensitivity, (), "sensitivity", 3),

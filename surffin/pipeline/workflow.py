@@ -226,6 +226,18 @@ class Plan:
         camp = self.campaign
         return {"all": list(camp.items), "scenes": list(camp.scenes), "none": []}[self.config["item_figures"]]
 
+    def export_inputs(self) -> dict[str, str | list[str]]:
+        """Return what the export reads: the training set, the summary, and the items' stores it draws on."""
+        camp = self.campaign
+        return {
+            "training": self.output("training"),
+            "summary": self.output("summary"),
+            "labels": self.outputs("labels", camp.scenes),
+            "aoi": self.outputs("aoi", camp.scenes),
+            "features": self.outputs("features", camp.items),
+            "ingest": self.outputs("ingest", camp.items),
+        }
+
     def results(self) -> list[str]:
         """Every item's features, every scene's labels, the summary and the roughness outputs."""
         return [

@@ -8,11 +8,14 @@ drawn.
 
 from __future__ import annotations
 
+import io
 import logging
 import os
 from pathlib import Path
 
 import numpy as np
+
+from surffin.io.files import write_atomically
 
 __all__ = ["DPI", "figure", "save", "colormap", "subsample", "message"]
 
@@ -42,7 +45,7 @@ def figure(width: float, height: float, layout: str | None = "constrained"):
 
 
 def save(fig, path: str | os.PathLike) -> Path:
-    """Write a figure at :data:`DPI`, in the image format of the path's suffix (PNG: fast compression).
+    """Write a figure at :data:`DPI`, atomically, in the image format of the path's suffix (PNG: fast compression).
 
     Parameters
     ----------
@@ -57,7 +60,10 @@ def save(fig, path: str | os.PathLike) -> Path:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI, pil_kwargs={"compress_level": 1})
+    buffer = io.BytesIO()
+    kwargs = {"pil_kwargs": {"compress_level": 1}} if path.suffix.lower() == ".png" else {}
+    fig.savefig(buffer, format=path.suffix.lstrip(".").lower() or "png", dpi=DPI, **kwargs)
+    write_atomically(path, buffer.getvalue())
     return path
 
 

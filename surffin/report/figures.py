@@ -48,6 +48,8 @@ from surffin.report.canvas import colormap, figure, message, save, subsample
 __all__ = [
     "FIGURE_INPUTS",
     "FIGURE_KINDS",
+    "class_colours",
+    "label_overlay",
     "plot_calibration_fit",
     "plot_r2_map",
     "parameter_table",
@@ -92,12 +94,22 @@ _RANGE = (2, 98)
 # --- helpers ----------------------------------------------------------------------------------
 
 
-def _class_colours(classes: Sequence[str]) -> dict[str, tuple]:
+def class_colours(classes: Sequence[str]) -> dict[str, tuple]:
     """Class name -> RGBA, in the order of ``classes`` (the label order)."""
     import matplotlib
 
     cycle = matplotlib.colormaps["tab10"]
     return {name: cycle(index % cycle.N) for index, name in enumerate(classes)}
+
+
+def label_overlay(label: np.ndarray, classes: Sequence[str]) -> np.ndarray:
+    """RGBA (H, W, 4) of a label image to draw over the intensity: class colours, unclassified dark, the rest clear."""
+    colours = class_colours(classes)
+    overlay = np.zeros((*label.shape, 4))
+    overlay[label == UNCLASSIFIED] = _UNCLASSIFIED_COLOUR
+    for index, name in enumerate(classes):
+        overlay[label == index] = (*colours[name][:3], _LABEL_ALPHA)
+    return overlay
 
 
 def _robust_range(values, percentiles=_RANGE) -> tuple[float, float] | tuple[None, None]:
@@ -533,7 +545,7 @@ def plot_feature_space(training: xr.Dataset, path: str | os.PathLike) -> Path:
     """
     training = training[["features", "class"]].load()
     classes = list(training.attrs.get("classes") or sorted(set(training["class"].values.tolist())))
-    colours = _class_colours(classes)
+    colours = class_colours(classes)
     values = training["features"].transpose("sample", "feature").values
     column = {name: index for index, name in enumerate(training["feature"].values.tolist())}
     labels = np.asarray(training["class"].values.tolist())
@@ -608,7 +620,7 @@ def plot_labels(
 
     labels = labels[["label", "label_filtered"]].load()
     classes = labels["label"].attrs["flag_meanings"].split()
-    colours = _class_colours(classes)
+    colours = class_colours(classes)
     background, view = _intensity_background(ingest, labels["label"])
     low, high = _robust_range(background.values, (1, 99))
     accuracy = (scores or {}).get("accuracy", {})
@@ -630,11 +642,7 @@ def plot_labels(
             extent=_extent(label),
             interpolation="nearest",
         )
-        overlay = np.zeros((*label.shape, 4))
-        overlay[label.values == UNCLASSIFIED] = _UNCLASSIFIED_COLOUR
-        for index, name in enumerate(classes):
-            overlay[label.values == index] = (*colours[name][:3], _LABEL_ALPHA)
-        ax.imshow(overlay, extent=_extent(label), interpolation="nearest")
+        ax.imshow(label_overlay(label.values, classes), extent=_extent(label), interpolation="nearest")
         title = titles[variable]
         if variable in accuracy:
             title += f": accuracy {100 * accuracy[variable]['accuracy']:.1f} % of {accuracy[variable]['n_scored']} px"

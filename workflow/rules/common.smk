@@ -7,7 +7,13 @@ from surffin.analysis.sensitivity import OUTPUTS as SENSITIVITY_FILES
 from surffin.errors import SurffinError
 from surffin.io.campaign import NAME_PATTERN
 from surffin.method.stages import aoi_stage, features_stage, labels_stage, reflectance_stage, registration_stage
-from surffin.pipeline.analyses import run_calibration_diagnostics, run_figures, run_paper_comparison, run_sensitivity
+from surffin.pipeline.analyses import (
+    run_calibration_diagnostics,
+    run_export,
+    run_figures,
+    run_paper_comparison,
+    run_sensitivity,
+)
 from surffin.pipeline.jobs import in_worker
 from surffin.pipeline.parameters import aoi_parameters, calibration_parameters, label_parameters
 from surffin.pipeline.run import (
@@ -124,4 +130,5 @@ def final_outputs(wildcards):
         *plan().results(),
         *expand(rules.item_figures.output.features, item=plan().figure_items()),
         *expand(rules.scene_figures.output.labels, scene=camp.scenes),
+        *rules.export.output,
     ]

@@ -126,3 +126,20 @@ rule scene_figures:
         code=STAGES["figures"].version,
     run:
         in_worker(run_figures, dict(output.items()), **dict(input.items()), log_path=log[0])
+
+
+rule export:
+    input:
+        unpack(from_plan("export_inputs")),
+        calibration=CALIBRATION,
+    output:
+        directory(f"{PROCESSED}/export"),
+    log:
+        f"{LOGS}/export.log",
+    threads: 1
+    resources:
+        mem_mb=1000,
+    params:
+        code=STAGES["export"].version,
+    run:
+        in_worker(run_export, output[0], training=input.training, calibration=input.calibration, log_path=log[0])
