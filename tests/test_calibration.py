@@ -142,10 +142,11 @@ def test_fit_equals_least_squares_on_raw_observations():
         )
         ours = fit.coef.values[:, y, x]
         # D is often near zero (its noise exceeds its value): compare it on the scale of C,
-        # since D theta and C theta^2 are of similar size over 0-0.9 rad
-        np.testing.assert_allclose(ours[:4], reference.x, rtol=1e-6, atol=1e-6 * abs(reference.x[2]))
+        # since D theta and C theta^2 are of similar size over 0-0.9 rad; C and D are correlated
+        # (-0.99): LAPACK builds differ by up to 3e-6 of C between the dependency floors and the newest
+        np.testing.assert_allclose(ours[:4], reference.x, rtol=1e-5, atol=1e-5 * abs(reference.x[2]))
         fitted_f = instrument_function(ours, d, theta)
-        np.testing.assert_allclose(fitted_f, instrument_function(np.append(reference.x, 1.0), d, theta), rtol=1e-8)
+        np.testing.assert_allclose(fitted_f, instrument_function(np.append(reference.x, 1.0), d, theta), rtol=1e-6)
         assert ours[4] == 1.0
         ssr = np.sum(reference.fun**2)
         sst = np.sum((target - target.mean()) ** 2)

@@ -130,8 +130,12 @@ _SCHEDULER = _Shared()
 
 def _enter_scheduler(scheduler: str, threads: int, stack: contextlib.ExitStack) -> None:
     if "://" in scheduler:
-        from distributed import Client
-
+        try:
+            from distributed import Client
+        except ImportError:
+            raise ValueError(
+                f"dask scheduler {scheduler!r} needs dask.distributed: pip install 'surffin[distributed]'"
+            ) from None
         stack.enter_context(Client(scheduler))
         return
     from dask.base import named_schedulers
