@@ -16,6 +16,7 @@ import surffin
 from surffin.errors import CalibrationError
 from surffin.grid import Roi
 from surffin.io.store import open_store, write_store
+from surffin.io.viewfile import write_view
 from surffin.method.calibration import (
     CALIBRATION_STATUS,
     TERMS,
@@ -546,3 +547,30 @@ def test_calibrate_logs_progress_and_refuses_bad_requests(campaign, caplog):
     with caplog.at_level(logging.INFO, logger="surffin"), pytest.raises(CalibrationError, match="no pixel"):
         calibrate(camp, exclude=everything[2:])
     assert any("calibration: 2/" in message for message in caplog.messages)
+
+
+def test_saturated_pixels_are_left_out_of_the_calibration_and_counted(tmp_path):
+    """Wall views clipped at a saturation level, as a camera would: with camera.saturation the fit is exact."""
+    surffin.simulate_campaign(tmp_path / "campaign", CLEAN)
+    camp = surffin.read_campaign(tmp_path / "campaign")
+    level = 2400.0  # the brightest wall views (nearest, most perpendicular) reach ~2600
+    clipped = {}
+    for path in (*camp.calibration.wall, *camp.calibration.reference.views):
+        view = camp.read_view(path)
+        clipped[str(path.relative_to(camp.root))] = int((view.valid & (view.intensity >= level)).sum())
+        write_view(path, view.xyz, np.minimum(view.intensity, level), pose=view.pose)
+    assert sum(count > 0 for count in clipped.values()) >= 3
+    truth = xr.open_zarr(tmp_path / "campaign-truth" / "instrument.zarr").compute()
+    saturating = dataclasses.replace(camp, camera=dataclasses.replace(camp.camera, saturation=level))
+
+    ds = calibrate(saturating, angular_smoothing=0.0)
+    assert ds.attrs["saturated_pixels"] == clipped
+    assert ds.attrs["settings"] == dict.fromkeys(clipped, {})
+    assert (ds.status.values == 0).all()
+    np.testing.assert_allclose(ds.coef.values[:2], truth.coef.values[:2], rtol=2e-5)
+    np.testing.assert_allclose(ds.coef.values[2:], truth.coef.values[2:], rtol=0, atol=6e-5)
+    assert ds.attrs["scale_k"] == pytest.approx(truth.attrs["scale_k"], rel=1e-6)
+
+    blind = calibrate(camp, angular_smoothing=0.0)  # the clipped intensities taken at face value
+    assert (blind.n_obs.values - ds.n_obs.values).sum() == sum(clipped.values())
+    assert np.abs(blind.coef.values[:2] / truth.coef.values[:2] - 1).max() > 0.1

@@ -1,5 +1,7 @@
 """Tests of surffin.io.campaign: read_campaign's validation and read_truth."""
 
+import json
+
 import numpy as np
 import pytest
 import yaml
@@ -7,7 +9,11 @@ import yaml
 from surffin.errors import CampaignError
 from surffin.grid import Roi
 from surffin.io.campaign import Camera, read_campaign, read_truth
-from surffin.io.viewfile import ABCY16_DEFAULT, write_view
+from surffin.io.ingest import ingest_item
+from surffin.io.store import open_store, write_store
+from surffin.io.viewfile import ABCY16_DEFAULT, META_SUFFIX, POSE_JSON_SUFFIX, list_views, sidecar_path, write_view
+from surffin.pipeline.parameters import read_config
+from surffin.pipeline.workflow import Plan
 
 VIEW_FILES = {
     "calibration/wall": ["w0.npz", "w1.ply", "w2.raw"],
@@ -120,10 +126,95 @@ def test_defaults_and_campaign_file_path(campaign):
     assert camp.name == "camp" and camp.calibration is None
     assert camp.crop == Roi((0, 6), (0, 8))
     assert camp.camera.intrinsics is None
-    assert camp.camera.abcy16 == {"scale": 0.5, "offset": ABCY16_DEFAULT["offset"]}
+    assert camp.camera.abcy16 == {"signed": False, "scale": 0.5, "offset": ABCY16_DEFAULT["offset"]}
+    assert (camp.camera.ply_intensity, camp.camera.saturation, camp.camera.hand_eye) == ("intensity", None, None)
+    assert camp.camera.match_settings == () and camp.camera.distortion is None
     assert camp.specimens["S1"].roi == Roi((0, 4), (2, 8))
     view = camp.read_view(camp.specimens["S1"].views[0])
     assert np.nanmin(view.xyz[..., 2]) < 0.001  # the metre values were read as mm
+
+
+HAND_EYE = [[0.0, -1.0, 0.0, 0.01], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.05], [0.0, 0.0, 0.0, 1.0]]
+
+
+def test_real_camera_keys(campaign, synthetic_view):
+    """Every key a real camera needs: signed ABCY16 with per-axis scale, the PLY intensity name, saturation,
+    the hand-eye transform, settings that must match, lens distortion."""
+    root, doc = campaign
+    xyz, intensity, _ = synthetic_view
+    signed = {"signed": True, "scale": [0.25, 0.25, 0.125]}
+    for path in root.glob("*/*/*.raw"):
+        write_view(path, xyz, intensity, abcy16=signed)
+    for path in root.glob("*/*/*.ply"):
+        path.write_bytes(path.read_bytes().replace(b"property float intensity\n", b"property float amplitude\n", 1))
+    for path in (path for folder in VIEW_FILES for path in list_views(root / folder)):
+        sidecar_path(path, META_SUFFIX).write_text('{"exposure_us": 250, "gain": "low", "temperature_c": 41.2}')
+    pose = sidecar_path(root / "specimens/S1/v0.npz", POSE_JSON_SUFFIX)
+    pose.write_text('{"translation": [0.1, 0.2, 0.3], "quaternion": [0, 0, 0, 1]}')  # 180 deg about z
+    doc["camera"].update(
+        abcy16=signed,
+        ply_intensity="amplitude",
+        saturation=900,
+        hand_eye=HAND_EYE,
+        match_settings=["exposure_us", "gain"],
+    )
+    doc["camera"]["intrinsics"]["distortion"] = [-0.1, 0.02, 0.001, -0.002, 0.0]
+    write_yaml(root, doc)
+
+    camera = read_campaign(root).camera
+    assert camera.abcy16 == {"signed": True, "scale": (0.25, 0.25, 0.125), "offset": (0.0, 0.0, 0.0)}
+    assert (camera.ply_intensity, camera.saturation, camera.match_settings) == (
+        "amplitude",
+        900.0,
+        ("exposure_us", "gain"),
+    )
+    assert camera.distortion == (-0.1, 0.02, 0.001, -0.002, 0.0)
+    np.testing.assert_array_equal(camera.view_kwargs["hand_eye"], HAND_EYE)
+    assert json.loads(json.dumps(camera.settings)) == camera.settings
+    assert camera.settings["hand_eye"] == HAND_EYE and camera.settings["abcy16"]["scale"] == [0.25, 0.25, 0.125]
+
+    camp = read_campaign(root)
+    view = camp.read_view(root / "specimens/S1/v0.npz")
+    flange = np.diag([-1.0, -1.0, 1.0, 1.0])
+    flange[:3, 3] = [0.1, 0.2, 0.3]
+    np.testing.assert_allclose(view.pose, flange @ np.array(HAND_EYE), atol=1e-12)
+    assert view.settings == {"exposure_us": 250, "gain": "low", "temperature_c": 41.2}
+    assert view.saturated.sum() == (view.valid & (view.intensity >= 900)).sum() > 0
+    raw = camp.read_view(root / "specimens/S2/v0.raw")
+    np.testing.assert_allclose(raw.xyz[raw.valid], xyz[raw.valid], atol=0.125e-3)
+    ply = camp.read_view(root / "specimens/S2/v1.ply")
+    np.testing.assert_allclose(ply.intensity[ply.valid], intensity[ply.valid], rtol=1e-6)
+
+
+def test_ingest_keeps_saturated_points_for_geometry_only(campaign, synthetic_view, tmp_path):
+    root, doc = campaign
+    xyz, intensity, valid = synthetic_view
+    doc["camera"]["saturation"] = 500
+    sidecar_path(root / "specimens/S1/v1.npz", META_SUFFIX).write_text('{"exposure_us": 250, "gain": "low"}')
+    write_yaml(root, doc)
+    ds = ingest_item(read_campaign(root), "S1")
+
+    rows, cols = slice(1, 5), slice(1, 7)  # the crop
+    saturated = (valid & (intensity >= 500))[rows, cols]
+    assert saturated.any()
+    for view in ("v0", "v1"):
+        np.testing.assert_array_equal(ds["saturated"].sel(view=view), saturated)
+        np.testing.assert_array_equal(ds["valid"].sel(view=view), valid[rows, cols] & ~saturated)
+        assert np.isfinite(ds["xyz"].sel(view=view).values[saturated]).all()  # the geometry keeps them
+    assert ds.attrs["saturated_pixels"] == {"v0": int(saturated.sum()), "v1": int(saturated.sum())}
+    assert ds.attrs["settings"] == {"v0": {}, "v1": {"exposure_us": 250, "gain": "low"}}
+    assert ds.attrs["camera"]["saturation"] == 500.0 and ds.attrs["camera"]["intrinsics"]["fx"] == 7.0
+    back = open_store(write_store(ds, tmp_path / "S1.zarr"), stage="ingest")
+    assert back.attrs["settings"] == ds.attrs["settings"] and back.attrs["camera"] == ds.attrs["camera"]
+    np.testing.assert_array_equal(back["saturated"], ds["saturated"])
+
+
+@pytest.mark.parametrize("size", [4, 8])
+def test_distortion_sizes(campaign, size):
+    root, doc = campaign
+    doc["camera"]["intrinsics"]["distortion"] = list(range(size))
+    write_yaml(root, doc)
+    assert read_campaign(root).camera.distortion == tuple(float(value) for value in range(size))
 
 
 def test_yaml_anchors_and_merge_keys_are_not_duplicates(campaign):
@@ -214,6 +305,26 @@ def truth_of(label, classes=("S1", "S2")):
     return mutate
 
 
+def settings_in(changes):
+    """Mutation: every view (of VIEW_FILES) gets exposure_us 250 and gain 2 in its meta.json, then ``changes``.
+
+    ``changes`` maps a view (relative path) to its settings, or to None for no sidecar at all.
+    """
+
+    def mutate(root, doc):
+        doc["camera"]["match_settings"] = ["exposure_us", "gain"]
+        for path in (path for folder in VIEW_FILES for path in list_views(root / folder)):
+            sidecar_path(path, META_SUFFIX).write_text('{"exposure_us": 250, "gain": 2}')
+        for relative, settings in changes.items():
+            sidecar = sidecar_path(root / relative, META_SUFFIX)
+            if settings is None:
+                sidecar.unlink()
+            else:
+                sidecar.write_text(json.dumps(settings))
+
+    return mutate
+
+
 def copy_view(source, target):
     def mutate(root, doc):
         (root / target).write_bytes((root / source).read_bytes())
@@ -286,6 +397,87 @@ BAD = {
     "cy-missing": (set_key("camera.intrinsics.cy", None), r"camera\.intrinsics\.cy: missing"),
     "abcy16-scale": (set_key("camera.abcy16", {"scale": -1}), r"abcy16\.scale: got -1; expected a number > 0"),
     "abcy16-offset": (set_key("camera.abcy16", {"offset": [1, 2]}), r"abcy16\.offset: .*three finite numbers"),
+    "abcy16-signed": (
+        set_key("camera.abcy16", {"signed": "yes"}),
+        r"abcy16\.signed: got 'yes'; expected true or false",
+    ),
+    "abcy16-scale-axes": (
+        set_key("camera.abcy16", {"scale": [0.25, 0.25]}),
+        r"abcy16\.scale: got \[0\.25, 0\.25\]; expected a number > 0 \(mm per code\) or three, one per axis",
+    ),
+    "abcy16-scale-axis-zero": (set_key("camera.abcy16", {"scale": [0.25, 0, 0.25]}), r"abcy16\.scale: got \[0\.25, 0"),
+    "abcy16-misspelt": (
+        set_key("camera.abcy16", {"signd": True}),
+        r"camera\.abcy16\.signd: unknown key 'signd' \(did you mean 'signed'\?\)",
+    ),
+    "abcy16-other-form": (
+        set_key("camera.abcy16", {"signed": True}),
+        r"calibration\.wall: .*w2\.raw: looks like Coord3D_ABCY16 data, not Coord3D_ABCY16s",
+    ),
+    "ply-intensity-words": (
+        set_key("camera.ply_intensity", "scalar Intensity"),
+        r"camera\.ply_intensity: got 'scalar Intensity'; expected a PLY property name",
+    ),
+    "ply-intensity-absent": (
+        set_key("camera.ply_intensity", "reflectance"),
+        r"wall: .*w1\.ply: no vertex property of the intensity \(reflectance, scalar_Intensity, intensities\)",
+    ),
+    "saturation-zero": (set_key("camera.saturation", 0), r"camera\.saturation: got 0; expected a number > 0"),
+    "hand-eye-shape": (
+        set_key("camera.hand_eye", HAND_EYE[:3]),
+        r"camera\.hand_eye: got .*; expected a rigid 4x4 transform \(flange-to-camera\), four rows of four numbers$",
+    ),
+    "hand-eye-scaled": (
+        set_key("camera.hand_eye", [[2.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]),
+        r"camera\.hand_eye: got .*; expected a rigid 4x4 transform .*: rotation part is not a rotation",
+    ),
+    "hand-eye-mirror": (
+        set_key("camera.hand_eye", [[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, -1.0, 0], [0, 0, 0, 1.0]]),
+        r"camera\.hand_eye: .*det -1",
+    ),
+    "hand-eye-text": (set_key("camera.hand_eye", "identity"), r"camera\.hand_eye: got 'identity'; expected a rigid"),
+    "match-settings-text": (
+        set_key("camera.match_settings", "exposure_us"),
+        r"camera\.match_settings: got 'exposure_us'; expected a list of setting names",
+    ),
+    "match-settings-twice": (
+        set_key("camera.match_settings", ["gain", "gain"]),
+        r"camera\.match_settings: got \['gain', 'gain'\]; expected each setting name once",
+    ),
+    "match-settings-differ": (
+        settings_in({"specimens/S2/v1.ply": {"exposure_us": 500, "gain": 2}, "scenes/T1/v0.npz": {"exposure_us": 500}}),
+        r"camera\.match_settings: setting 'exposure_us' differs between views \(250 in 9 view\(s\): "
+        r"calibration/wall/w0\.npz, calibration/wall/w1\.ply, calibration/wall/w2\.raw, \.\.\.; 500 in 2 view\(s\): "
+        r"specimens/S2/v1\.ply, scenes/T1/v0\.npz\); expected one value in every view",
+    ),
+    "match-settings-missing": (
+        settings_in({"calibration/spectralon/p1.npz": {"exposure_us": 250}, "scenes/T1/v1.npz": {"exposure_us": 250}}),
+        r"setting 'gain' differs between views \(2 in 9 view\(s\): .*; missing in 2 view\(s\): "
+        r"calibration/spectralon/p1\.npz, scenes/T1/v1\.npz\)",
+    ),
+    "match-settings-type": (
+        settings_in({"specimens/S1/v0.npz": {"exposure_us": "250", "gain": 2}}),
+        r"'exposure_us' differs between views \(250 in 10 view\(s\).*; '250' in 1 view\(s\): specimens/S1/v0\.npz\)",
+    ),
+    "settings-broken": (
+        then(settings_in({}), write_bytes("specimens/S1/v1.meta.json", b'{"gain": [1]}')),
+        r"specimens\.S1\.views: .*v1\.meta\.json: setting 'gain' is \[1\]; expected",
+    ),
+    "pose-json-and-txt": (
+        then(
+            write_bytes("scenes/T1/v1.pose.txt", b"1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1"),
+            write_bytes("scenes/T1/v1.pose.json", b'{"translation": [0, 0, 0], "quaternion": [1, 0, 0, 0]}'),
+        ),
+        r"scenes\.T1\.views: .*v1\.npz: 2 poses given: .*v1\.pose\.txt and .*v1\.pose\.json",
+    ),
+    "distortion-6": (
+        set_key("camera.intrinsics.distortion", [0, 0, 0, 0, 0, 0]),
+        r"camera\.intrinsics\.distortion: got \[0, 0, 0, 0, 0, 0\]; expected a list of 4, 5, 8 finite numbers",
+    ),
+    "distortion-text": (
+        set_key("camera.intrinsics.distortion", ["k1", 0, 0, 0]),
+        r"intrinsics\.distortion: got \['k1'",
+    ),
     "roughness-negative": (set_key("specimens.S1.roughness_mm", -0.1), r"roughness_mm: got -0\.1; expected a"),
     "shared-name": (
         set_key("scenes.S1", {"views": "scenes/T1"}),
@@ -353,3 +545,20 @@ def test_roi():
     assert roi.clip(Roi((4, 20), (1, 3))) == Roi((4, 10), (1, 3))
     with pytest.raises(ValueError, match="does not overlap"):
         roi.clip(Roi((10, 12), (0, 5)))
+
+
+# --- a campaign the workflow refuses -----------------------------------------------------------------
+
+
+def test_scenes_without_specimens_or_extra_training_are_refused_before_any_job(campaign, tmp_path):
+    root, doc = campaign
+    del doc["specimens"]
+    write_yaml(root, doc)
+    config = {**read_config(), "campaign": str(root), "processed": str(tmp_path / "out")}
+    with pytest.raises(CampaignError) as raised:
+        Plan.read(root, config)
+    message = str(raised.value)
+    assert message.startswith(f"{root.resolve() / 'campaign.yaml'}: specimens: none")
+    assert "nothing to train the classifier of the scenes (T1) on" in message and "extra_training" in message
+    assert Plan.read(root, {**config, "extra_training": ["other/training.zarr"]}).campaign.specimens == {}
+    assert not (tmp_path / "out").exists()

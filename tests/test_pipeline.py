@@ -4,6 +4,7 @@ import dataclasses
 import logging
 import math
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -165,6 +166,25 @@ def test_the_plan_names_each_job_s_files_from_the_table(tiny_campaign, tmp_path)
     )
     without = Plan.read(tiny_campaign, {**config, "calibration_repeat": None})
     assert without.repeat is None
+
+
+def test_a_views_sidecars_are_inputs_of_the_jobs_that_read_it(tiny_campaign, tmp_path):
+    raw = tmp_path / "raw"
+    shutil.copytree(tiny_campaign, raw)
+    camp = surffin.read_campaign(raw)
+    view = camp.items["S2"].views[1]
+    meta = view.with_name(f"{view.stem}.meta.json")
+    meta.write_text('{"exposure_us": 250}')
+    wall = camp.calibration.wall[0]
+    settings = wall.with_name(f"{wall.stem}.meta.json")
+    settings.write_text('{"exposure_us": 250}')
+    config = {**read_config(), "processed": str(tmp_path / "out"), "calibration_repeat": None}
+    plan = Plan.read(raw, config)
+    assert plan.item_views("S2") == [str(path) for path in camp.items["S2"].views[:2]] + [str(meta)] + [
+        str(path) for path in camp.items["S2"].views[2:]
+    ]
+    assert str(settings) in plan.calibration_views()
+    assert plan.item_views("S1") == [str(path) for path in camp.items["S1"].views]
 
 
 def test_the_plan_refuses_a_calibration_of_another_camera(tiny_campaign, tmp_path):

@@ -3,13 +3,18 @@
 import numpy as np
 import plyfile
 import pytest
+from scipy.spatial.transform import Rotation
 
 from surffin.errors import ViewFileError
 from surffin.io.viewfile import (
+    META_SUFFIX,
+    POSE_JSON_SUFFIX,
     check_view,
     list_views,
     pose_sidecar_path,
+    read_settings,
     read_view,
+    sidecar_path,
     valid_pixels,
     write_view,
 )
@@ -152,6 +157,262 @@ def test_ply_writer_format(tmp_path, synthetic_view, binary, header_line):
     assert b"format " + header_line + b"\n" in (tmp_path / "v.ply").read_bytes()[:200]
 
 
+# --- vendor formats, written by other means than write_view ---------------------------------------
+
+ABCY16_PIXEL = np.dtype([("a", "<i2"), ("b", "<i2"), ("c", "<i2"), ("y", "<u2")])
+ABCY16_PIXEL_UNSIGNED = np.dtype([("a", "<u2"), ("b", "<u2"), ("c", "<u2"), ("y", "<u2")])
+
+
+def abcy16_bytes(sensor, a, b, c, y, *, signed):
+    """A Coord3D_ABCY16(s) buffer from channel images, packed field by field."""
+    pixels = np.zeros((sensor["height"], sensor["width"]), dtype=ABCY16_PIXEL if signed else ABCY16_PIXEL_UNSIGNED)
+    for name, channel in zip("abcy", (a, b, c, y)):
+        pixels[name] = channel
+    return pixels.tobytes()
+
+
+def lateral_codes(sensor, scale=(0.25, 0.25)):
+    """A and B codes (signed) of a scene about 1 m in front of the camera: x, y within +-0.2 m."""
+    rows, cols = np.mgrid[0 : sensor["height"], 0 : sensor["width"]]
+    return np.rint((cols - 4) * 40 / scale[0]).astype(int), np.rint((rows - 3) * 40 / scale[1]).astype(int)
+
+
+def test_raw_signed_abcy16s_with_per_axis_scale(tmp_path, sensor):
+    scale = (0.25, 0.5, 0.125)
+    a, b = lateral_codes(sensor, scale)
+    c = np.full(a.shape, 8000)  # 1000 mm
+    c[1, 1] = -32768
+    a[2, 3] = -32768
+    path = tmp_path / "v.raw"
+    path.write_bytes(abcy16_bytes(sensor, a, b, c, 700, signed=True))
+    abcy16 = {"signed": True, "scale": list(scale)}
+
+    check_view(path, abcy16=abcy16, **sensor)
+    view = read_view(path, abcy16=abcy16, **sensor)
+    expected_valid = np.ones(a.shape, dtype=bool)
+    expected_valid[1, 1] = expected_valid[2, 3] = False
+    np.testing.assert_array_equal(view.valid, expected_valid)
+    np.testing.assert_allclose(view.xyz[0, 0], [-0.16, -0.12, 1.0])  # offset [0, 0, 0]: the signed default
+    np.testing.assert_allclose(view.xyz[5, 7], [0.12, 0.08, 1.0])
+    assert (view.intensity[expected_valid] == 700).all()
+
+
+def test_raw_unsigned_with_per_axis_scale_and_offset(tmp_path, sensor):
+    a, b = lateral_codes(sensor, (0.5, 0.25))
+    abcy16 = {"scale": [0.5, 0.25, 0.25], "offset": [-16384.0, -8192.0, 0.0]}
+    path = tmp_path / "v.raw"
+    path.write_bytes(abcy16_bytes(sensor, a + 32768, b + 32768, 4000, 9, signed=False))
+    view = read_view(path, abcy16=abcy16, **sensor)
+    assert view.valid.all()
+    np.testing.assert_allclose(view.xyz[0, 0], [-0.16, -0.12, 1.0])
+
+
+@pytest.mark.parametrize("signed", [True, False])
+def test_raw_of_the_other_signedness_is_refused(tmp_path, sensor, signed):
+    """A file written as one form and read as the other: x, y near +-8192 mm; refused naming the file."""
+    a, b = lateral_codes(sensor)
+    path = tmp_path / "v.raw"
+    if signed:  # an ABCY16s file (offset 0) read as unsigned ABCY16
+        path.write_bytes(abcy16_bytes(sensor, a, b, 4000, 500, signed=True))
+    else:  # an ABCY16 file (offset -8192) read as signed ABCY16s
+        path.write_bytes(abcy16_bytes(sensor, a + 32768, b + 32768, 4000, 500, signed=False))
+    read_as = {"signed": not signed}
+    match = (
+        rf"v\.raw: looks like Coord3D_ABCY16{'s' if signed else ''} data, not Coord3D_ABCY16{'' if signed else 's'} "
+        rf"\(camera\.abcy16\.signed: {str(not signed).lower()}\).*set camera\.abcy16\.signed: {str(signed).lower()}"
+    )
+    with pytest.raises(ViewFileError, match=match) as raised:
+        check_view(path, abcy16=read_as, **sensor)
+    assert str(path) in str(raised.value)
+    with pytest.raises(ViewFileError, match=match):
+        read_view(path, abcy16=read_as, **sensor)
+    assert read_view(path, abcy16={"signed": signed}, **sensor).valid.all()
+
+
+def test_signed_invalid_marker_read_as_unsigned_is_refused(tmp_path, sensor):
+    """Most pixels invalid (-32768 in A, B, C): read as unsigned they become (0, 0, 8192 mm) points."""
+    a, b = lateral_codes(sensor)
+    c = np.full(a.shape, 4000)
+    a[2:], b[2:], c[2:] = -32768, -32768, -32768
+    path = tmp_path / "v.raw"
+    path.write_bytes(abcy16_bytes(sensor, a, b, c, 500, signed=True))
+    with pytest.raises(ViewFileError, match="looks like Coord3D_ABCY16s data.*invalid marker"):
+        read_view(path, **sensor)
+    assert read_view(path, abcy16={"signed": True}, **sensor).valid.sum() == 2 * sensor["width"]
+
+
+def test_write_view_signed_raw_round_trip(tmp_path, synthetic_view, sensor):
+    xyz, intensity, valid = synthetic_view
+    xyz = xyz.copy()
+    xyz[..., 0] -= 0.2  # negative x: codes below zero
+    path = tmp_path / "v.raw"
+    abcy16 = {"signed": True, "scale": [0.25, 0.25, 0.125]}
+    write_view(path, xyz, intensity, abcy16=abcy16)
+    pixels = np.frombuffer(path.read_bytes(), dtype=ABCY16_PIXEL).reshape(xyz.shape[:2])
+    assert (pixels["a"][~valid] == -32768).all() and (pixels["a"][valid] < 0).any()
+    np.testing.assert_array_equal(pixels["c"][valid], np.rint(xyz[valid][:, 2] * 1000 / 0.125))
+    view = read_view(path, abcy16=abcy16, **sensor)
+    np.testing.assert_array_equal(view.valid, valid)
+    np.testing.assert_allclose(view.xyz[valid], xyz[valid], rtol=0, atol=RAW_QUANTUM_M)
+    with pytest.raises(ValueError, match=r"ABCY16 codes .*expected -32767\.\.32767"):
+        write_view(path, np.full_like(xyz, 9.0), intensity, abcy16={"signed": True})
+
+
+def ply_file(header, rows, *, newline=b"\n", binary_rows=None):
+    """PLY bytes from header lines and either ascii rows (lists of numbers) or a binary body."""
+    text = newline.join(line.encode("ascii") for line in ["ply", *header, "end_header"]) + newline
+    if binary_rows is not None:
+        return text + binary_rows
+    return text + b"".join(" ".join(f"{value:.9g}" for value in row).encode("ascii") + newline for row in rows)
+
+
+def cloudcompare_header(count):
+    return [
+        "format ascii 1.0",
+        "comment Created by CloudCompare v2.12.4",
+        "obj_info Generated by CloudCompare!",
+        f"element vertex {count}",
+        "property float x",
+        "property float y",
+        "property float z",
+        "property uchar red",
+        "property uchar green",
+        "property uchar blue",
+        "property float scalar_Intensity",
+    ]
+
+
+@pytest.mark.parametrize("newline", [b"\n", b"\r\n", b"\r"], ids=["lf", "crlf", "cr"])
+def test_ply_as_cloudcompare_writes_it(tmp_path, synthetic_view, sensor, newline):
+    xyz, intensity, valid = synthetic_view
+    flat = xyz.reshape(-1, 3)  # NaN written as nan
+    rows = [[*point, 10, 20, 30, level] for point, level in zip(flat, intensity.ravel())]
+    path = tmp_path / "v.ply"
+    path.write_bytes(ply_file(cloudcompare_header(len(rows)), rows, newline=newline))
+    check_view(path, **sensor)
+    view = read_view(path, **sensor)
+    np.testing.assert_array_equal(view.valid, valid)
+    np.testing.assert_allclose(view.xyz[valid], xyz[valid], rtol=1e-6)
+    np.testing.assert_allclose(view.intensity[valid], intensity[valid], rtol=1e-6)
+
+
+@pytest.mark.parametrize("newline", [b"\n", b"\r"], ids=["lf", "cr"])
+def test_ply_as_open3d_writes_it(tmp_path, synthetic_view, sensor, newline):
+    xyz, intensity, valid = synthetic_view
+    header = [
+        "format binary_little_endian 1.0",
+        "comment Created by Open3D",
+        f"element vertex {xyz.shape[0] * xyz.shape[1]}",
+        *(f"property double {name}" for name in ("x", "y", "z", "nx", "ny", "nz", "intensities")),
+    ]
+    table = np.column_stack([xyz.reshape(-1, 3), np.zeros((xyz.shape[0] * xyz.shape[1], 3)), intensity.ravel()])
+    path = tmp_path / "v.ply"
+    path.write_bytes(ply_file(header, None, newline=newline, binary_rows=table.astype("<f8").tobytes()))
+    check_view(path, **sensor)
+    view = read_view(path, **sensor)
+    np.testing.assert_array_equal(view.valid, valid)
+    np.testing.assert_allclose(view.xyz[valid], xyz[valid], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(view.intensity[valid], intensity[valid], rtol=1e-7)
+
+
+def test_ply_intensity_property_named_by_the_camera(tmp_path, synthetic_view, sensor):
+    xyz, intensity, valid = synthetic_view
+    flat = xyz.reshape(-1, 3)
+    path = tmp_path / "v.ply"
+    columns = {"x": flat[:, 0], "y": flat[:, 1], "z": flat[:, 2], "intensity": np.zeros(len(flat), "u2")}
+    columns["reflectance"] = intensity.ravel().astype("f4")
+    plyfile.PlyData([vertex_element(columns)]).write(path)
+    assert (read_view(path, **sensor).intensity == 0).all()
+    named = read_view(path, ply_intensity="reflectance", **sensor)
+    np.testing.assert_allclose(named.intensity[valid], intensity[valid], rtol=1e-6)
+    del columns["intensity"], columns["reflectance"]
+    columns["intensities"] = intensity.ravel()
+    plyfile.PlyData([vertex_element(columns)]).write(path)
+    fallback = read_view(path, ply_intensity="reflectance", **sensor)  # absent: Open3D's name is taken
+    np.testing.assert_allclose(fallback.intensity[valid], intensity[valid], rtol=1e-7)
+
+
+def test_ply_with_filtered_points_is_refused(tmp_path, synthetic_view, sensor):
+    """An Arena SDK export with filterPoints on keeps only the valid pixels."""
+    xyz, intensity, valid = synthetic_view
+    kept = np.column_stack([xyz[valid], intensity[valid]])
+    header = ["format binary_little_endian 1.0", "comment Lucid Vision Labs", f"element vertex {len(kept)}"]
+    header += [f"property float {name}" for name in ("x", "y", "z", "intensity")]
+    path = tmp_path / "v.ply"
+    path.write_bytes(ply_file(header, None, binary_rows=kept.astype("<f4").tobytes()))
+    match = r"v\.ply: 44 vertices, fewer than width\*height = 8\*6 = 48.*filterPoints on.*turn filterPoints off"
+    for read in (check_view, read_view):
+        with pytest.raises(ViewFileError, match=match):
+            read(path, **sensor)
+
+
+# --- pose and settings sidecars -----------------------------------------------------------------
+
+
+def write_json(path, text):
+    path.write_text(text)
+    return path
+
+
+def test_pose_json_sidecar_against_scipy_and_hand_eye(tmp_path, synthetic_view, sensor):
+    xyz, intensity, _ = synthetic_view
+    path = tmp_path / "v.npz"
+    write_view(path, xyz, intensity, units="mm")
+    quaternion = np.array([0.9, -0.1, 0.3, 0.2])  # not quite unit: normalised
+    quaternion *= 1.0005 / np.linalg.norm(quaternion)
+    write_json(
+        sidecar_path(path, POSE_JSON_SUFFIX), f'{{"translation": [100, -20, 350], "quaternion": {quaternion.tolist()}}}'
+    )
+    flange = np.eye(4)
+    flange[:3, :3] = Rotation.from_quat(quaternion, scalar_first=True).as_matrix()
+    flange[:3, 3] = [100, -20, 350]
+
+    view = read_view(path, units="mm", **sensor)
+    expected = flange.copy()
+    expected[:3, 3] /= 1000
+    np.testing.assert_allclose(view.pose, expected, atol=1e-12)
+
+    hand_eye = rigid_pose(translation=(5.0, 0.0, 60.0), angle=0.1)  # mm, as the pose
+    camera = read_view(path, units="mm", hand_eye=hand_eye, **sensor).pose
+    expected = flange @ hand_eye
+    expected[:3, 3] /= 1000
+    np.testing.assert_allclose(camera, expected, atol=1e-12)
+
+
+def test_settings_sidecar(tmp_path, synthetic_view, sensor):
+    xyz, intensity, _ = synthetic_view
+    path = tmp_path / "v.ply"
+    write_view(path, xyz, intensity)
+    assert read_settings(path) == {} and read_view(path, **sensor).settings == {}
+    settings = {"exposure_us": 250, "gain": "low", "accumulation": 4, "temperature_c": 41.2}
+    write_json(
+        sidecar_path(path, META_SUFFIX), '{"exposure_us": 250, "gain": "low", "accumulation": 4, "temperature_c": 41.2}'
+    )
+    assert read_settings(path) == settings and read_view(path, **sensor).settings == settings
+
+
+def test_saturated_pixels(tmp_path, synthetic_view, sensor):
+    xyz, intensity, valid = synthetic_view
+    path = tmp_path / "v.npz"
+    write_view(path, xyz, intensity)
+    assert read_view(path, **sensor).saturated is None
+    view = read_view(path, saturation=500.0, **sensor)
+    np.testing.assert_array_equal(view.saturated, valid & (intensity >= 500.0))
+    np.testing.assert_array_equal(view.radiometric, valid & (intensity < 500.0))
+    assert 0 < view.saturated.sum() < valid.sum()
+    np.testing.assert_array_equal(view.intensity[view.saturated], intensity[view.saturated].astype(np.float32))
+
+
+def test_rewrite_removes_stale_pose_json(tmp_path, synthetic_view, sensor):
+    xyz, intensity, _ = synthetic_view
+    path = tmp_path / "v.npz"
+    write_view(path, xyz, intensity)
+    write_json(sidecar_path(path, POSE_JSON_SUFFIX), '{"translation": [0, 0, 0], "quaternion": [1, 0, 0, 0]}')
+    write_view(path, xyz, intensity, pose=rigid_pose())
+    assert sorted(snapshot(tmp_path)) == ["v.npz"]
+    np.testing.assert_allclose(read_view(path, **sensor).pose, rigid_pose())
+
+
 # --- broken files -------------------------------------------------------------------------------
 
 
@@ -231,6 +492,24 @@ def sidecar_text(text):
     return make
 
 
+def json_sidecar(suffix, text, name="v.ply", pose=None):
+    """Maker of a view with the JSON sidecar ``<stem><suffix>`` holding ``text``."""
+
+    def make(folder, xyz, intensity):
+        path = folder / name
+        write_view(path, xyz, intensity, pose=pose)
+        return path, write_json(sidecar_path(path, suffix), text)
+
+    return make
+
+
+def two_pose_sidecars(folder, xyz, intensity):
+    path = folder / "v.ply"
+    write_view(path, xyz, intensity, pose=rigid_pose())
+    write_json(sidecar_path(path, POSE_JSON_SUFFIX), '{"translation": [0, 0, 0], "quaternion": [1, 0, 0, 0]}')
+    return path, sidecar_path(path, POSE_JSON_SUFFIX)
+
+
 def ply_of(**changes):
     """Maker of a binary PLY of the synthetic arrays, with ``changes`` (None removes a property)."""
 
@@ -298,12 +577,81 @@ BROKEN = {
     "npz-pose-scaled": (npz_with_pose(pose_scaled(1.001)), "malformed pose: .*not a rotation", True),
     "npz-pose-mirror": (npz_with_pose(np.diag([1.0, 1.0, -1.0, 1.0])), "malformed pose: .*det -1", True),
     "npz-pose-nan": (npz_with_pose(pose_with(0, 3, np.nan)), "malformed pose: non-finite", True),
-    "pose-in-npz-and-sidecar": (pose_in_npz_and_sidecar, "both inside the npz and in the sidecar", True),
+    "pose-in-npz-and-sidecar": (
+        pose_in_npz_and_sidecar,
+        r"2 poses given: the npz's array 'pose' and .*v\.pose\.txt; expected at most one pose per view",
+        True,
+    ),
     "sidecar-15-numbers": (sidecar_text("1 " * 15), "holds 15 numbers; expected 16", True),
     "sidecar-word": (sidecar_text("1 " * 15 + "one"), "unreadable pose sidecar", True),
     "sidecar-malformed": (sidecar_text("1 0 0 0 0 1 0 0 0 0 1 0 0 0 1 1"), "malformed pose: last row", True),
-    "ply-vertex-count": (with_arrays(lambda x, i: (x[:5], i[:5]), "v.ply"), r"40 vertices; expected", True),
-    "ply-no-intensity": (ply_of(intensity=None), "'intensity' is missing", True),
+    "pose-txt-and-json": (
+        two_pose_sidecars,
+        r"2 poses given: .*v\.pose\.txt and .*v\.pose\.json; expected at most one pose per view",
+        True,
+    ),
+    "pose-npz-and-json": (
+        json_sidecar(POSE_JSON_SUFFIX, '{"translation": [0, 0, 0], "quaternion": [1, 0, 0, 0]}', "v.npz", rigid_pose()),
+        r"2 poses given: the npz's array 'pose' and .*v\.pose\.json",
+        True,
+    ),
+    "pose-json-not-unit": (
+        json_sidecar(POSE_JSON_SUFFIX, '{"translation": [0, 0, 0], "quaternion": [1, 0.1, 0, 0]}'),
+        r"'quaternion' \[1, 0\.1, 0, 0\] has norm 1\.00499; expected a unit quaternion \[w, x, y, z\]",
+        True,
+    ),
+    "pose-json-zero": (
+        json_sidecar(POSE_JSON_SUFFIX, '{"translation": [0, 0, 0], "quaternion": [0, 0, 0, 0]}'),
+        "has norm 0; expected a unit quaternion",
+        True,
+    ),
+    "pose-json-short": (
+        json_sidecar(POSE_JSON_SUFFIX, '{"translation": [0, 0], "quaternion": [1, 0, 0, 0]}'),
+        r"'translation' is \[0, 0\]; expected 3 finite numbers",
+        True,
+    ),
+    "pose-json-matrix": (
+        json_sidecar(POSE_JSON_SUFFIX, '{"matrix": [1, 0, 0, 0]}'),
+        r"pose sidecar holds .*; expected \{\"translation\": \[x, y, z\], \"quaternion\": \[w, x, y, z\]\}",
+        True,
+    ),
+    "pose-json-garbled": (
+        json_sidecar(POSE_JSON_SUFFIX, '{"translation": [0, 0, 0],'),
+        "unreadable pose sidecar",
+        True,
+    ),
+    "pose-json-infinite": (
+        json_sidecar(POSE_JSON_SUFFIX, '{"translation": [0, 0, 1e999], "quaternion": [1, 0, 0, 0]}'),
+        r"unreadable pose sidecar \(1e999 is not a finite number\)",
+        True,
+    ),
+    "settings-not-object": (json_sidecar(META_SUFFIX, "[250, 4]"), "settings sidecar holds list; expected one", True),
+    "settings-nested": (
+        json_sidecar(META_SUFFIX, '{"exposure_us": {"value": 250}}'),
+        r"setting 'exposure_us' is \{'value': 250\}; expected one JSON object of setting names to numbers or strings",
+        True,
+    ),
+    "settings-bool": (json_sidecar(META_SUFFIX, '{"hdr": true}'), "setting 'hdr' is True; expected", True),
+    "settings-nan": (
+        json_sidecar(META_SUFFIX, '{"gain": NaN}'),
+        r"unreadable settings sidecar \(NaN is not a finite",
+        True,
+    ),
+    "settings-repeated": (
+        json_sidecar(META_SUFFIX, '{"gain": 1, "gain": 2}'),
+        r"unreadable settings sidecar \(repeated key\(s\) \['gain'\]\)",
+        True,
+    ),
+    "ply-vertex-count": (
+        with_arrays(lambda x, i: (np.concatenate([x, x[:1]]), np.concatenate([i, i[:1]])), "v.ply"),
+        r"56 vertices; expected width\*height = 8\*6 = 48",
+        True,
+    ),
+    "ply-no-intensity": (
+        ply_of(intensity=None),
+        r"no vertex property of the intensity \(intensity, scalar_Intensity, intensities\).*camera\.ply_intensity",
+        True,
+    ),
     "ply-integer-x": (ply_of(x=np.zeros(48, "i4")), "'x' is int32; expected a scalar float or double", True),
     "ply-truncated": (edited(written("v.ply"), truncated(-10)), "truncated PLY", True),
     "ply-garbled-ascii": (

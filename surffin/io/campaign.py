@@ -8,13 +8,17 @@ cheaply, every view file. Each error is a :class:`~surffin.errors.CampaignError`
 naming ``campaign.yaml``, the key, the bad value and what is expected.
 
 The structure of ``campaign.yaml`` is described once, as data: a converter per
-key (``_KEY`` tables below) checked by one generic mapping checker.
+key (``_KEY`` tables below) checked by one generic mapping checker. The
+acquisition settings named in ``camera.match_settings`` are compared over every
+view of the calibration and of the items.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import difflib
+import json
 import math
 import re
 import reprlib
@@ -29,7 +33,17 @@ import yaml
 
 from surffin.errors import CampaignError, ViewFileError
 from surffin.grid import Roi
-from surffin.io.viewfile import ABCY16_DEFAULT, View, check_view, list_views, npz_headers, read_view
+from surffin.io.viewfile import (
+    PLY_INTENSITY,
+    View,
+    abcy16_encoding,
+    check_view,
+    list_views,
+    npz_headers,
+    pose_problem,
+    read_settings,
+    read_view,
+)
 
 __all__ = [
     "CAMPAIGN_FILE",
@@ -49,7 +63,10 @@ MIN_VIEWS = 2
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 
 _UNITS = ("m", "mm")
+_DISTORTION_SIZES = (4, 5, 8)
+_SHOWN_VIEWS = 3
 _TOP_LEVEL = "(top level)"
+_MISSING = object()
 _MERGE_TAG = "tag:yaml.org,2002:merge"
 _SHOW = reprlib.Repr()
 _SHOW.maxstring = _SHOW.maxother = 60
@@ -66,9 +83,20 @@ class Camera:
     units : {"m", "mm"}
         Unit of xyz (and pose translation) in npz and ply view files.
     intrinsics : dict or None
-        ``{"fx", "fy", "cx", "cy"}`` pinhole parameters, pixels.
+        ``{"fx", "fy", "cx", "cy"}`` pinhole parameters, pixels, and
+        ``"distortion"`` (a tuple of 4, 5 or 8 OpenCV coefficients) when given.
     abcy16 : dict
-        ``{"scale": float, "offset": (3,) floats}``, mm, of raw view files.
+        ``{"signed": bool, "scale": float or (3,) floats, "offset": (3,) floats}``,
+        mm, of raw view files (:func:`~surffin.io.viewfile.abcy16_encoding`).
+    ply_intensity : str
+        Name of the PLY intensity property.
+    saturation : float or None
+        Intensity at or above which a pixel is saturated.
+    hand_eye : (4, 4) tuple of tuples or None
+        Flange-to-camera transform, its translation in the view files' unit;
+        the views' poses are then the flange's (world-from-flange).
+    match_settings : tuple of str
+        Acquisition settings that every view must share.
     """
 
     width: int
@@ -76,6 +104,10 @@ class Camera:
     units: str
     intrinsics: dict | None
     abcy16: dict
+    ply_intensity: str = PLY_INTENSITY
+    saturation: float | None = None
+    hand_eye: tuple[tuple[float, ...], ...] | None = None
+    match_settings: tuple[str, ...] = ()
 
     @property
     def sensor(self) -> Roi:
@@ -83,9 +115,27 @@ class Camera:
         return Roi((0, self.height), (0, self.width))
 
     @property
+    def distortion(self) -> tuple[float, ...] | None:
+        """OpenCV distortion coefficients ``(k1, k2, p1, p2[, k3[, k4, k5, k6]])``, or None."""
+        return None if self.intrinsics is None else self.intrinsics.get("distortion")
+
+    @property
     def view_kwargs(self) -> dict:
         """Keyword arguments of :func:`~surffin.io.viewfile.read_view` and ``check_view`` for this camera."""
-        return {"width": self.width, "height": self.height, "units": self.units, "abcy16": self.abcy16}
+        return {
+            "width": self.width,
+            "height": self.height,
+            "units": self.units,
+            "abcy16": self.abcy16,
+            "ply_intensity": self.ply_intensity,
+            "saturation": self.saturation,
+            "hand_eye": None if self.hand_eye is None else np.array(self.hand_eye),
+        }
+
+    @property
+    def settings(self) -> dict:
+        """Everything ``campaign.yaml`` says about the camera, as plain JSON values (for store attrs and params)."""
+        return json.loads(json.dumps(dataclasses.asdict(self)))
 
 
 @dataclass(frozen=True)
@@ -224,7 +274,9 @@ def read_campaign(
         False when an existing calibration store is used; the
         ``calibration:`` section is then optional (still checked if present).
     check_views : bool
-        Check the structure of every view file (cheap: headers and sizes).
+        Check the structure of every view file and its sidecars (cheap:
+        headers and sizes), and that the settings of ``camera.match_settings``
+        agree over the views.
 
     Returns
     -------
@@ -500,6 +552,59 @@ def _offset(value: Any, key: str) -> tuple[float, float, float]:
     return tuple(float(part) for part in value)
 
 
+def _boolean(value: Any, key: str) -> bool:
+    if not isinstance(value, bool):
+        _fail(key, value, "true or false")
+    return value
+
+
+def _scale(value: Any, key: str) -> float | tuple[float, float, float]:
+    if _is_number(value) and value > 0:
+        return float(value)
+    if not (isinstance(value, list) and len(value) == 3 and all(_is_number(part) and part > 0 for part in value)):
+        _fail(key, value, "a number > 0 (mm per code) or three, one per axis [sA, sB, sC]")
+    return tuple(float(part) for part in value)
+
+
+def _property_name(value: Any, key: str) -> str:
+    if not isinstance(value, str) or not re.fullmatch(r"\S+", value):
+        _fail(key, value, "a PLY property name (one word, e.g. intensity or scalar_Intensity)")
+    return value
+
+
+def _distortion(value: Any, key: str) -> tuple[float, ...]:
+    sizes = ", ".join(map(str, _DISTORTION_SIZES))
+    if not (isinstance(value, list) and len(value) in _DISTORTION_SIZES and all(map(_is_number, value))):
+        _fail(key, value, f"a list of {sizes} finite numbers: OpenCV's [k1, k2, p1, p2, k3, k4, k5, k6] or its start")
+    return tuple(float(part) for part in value)
+
+
+def _intrinsics(*, distortion: tuple[float, ...] | None, **pinhole: float) -> dict:
+    return pinhole if distortion is None else {**pinhole, "distortion": distortion}
+
+
+def _rigid(value: Any, key: str) -> tuple[tuple[float, ...], ...]:
+    expected = "a rigid 4x4 transform (flange-to-camera), four rows of four numbers"
+    if not (
+        isinstance(value, list)
+        and len(value) == 4
+        and all(isinstance(row, list) and len(row) == 4 and all(map(_is_number, row)) for row in value)
+    ):
+        _fail(key, value, expected)
+    problem = pose_problem(np.array(value, dtype=np.float64))
+    if problem:
+        _fail(key, value, f"{expected}: {problem}")
+    return tuple(tuple(float(part) for part in row) for row in value)
+
+
+def _setting_names(value: Any, key: str) -> tuple[str, ...]:
+    if not (isinstance(value, list) and all(isinstance(name, str) and name for name in value)):
+        _fail(key, value, "a list of setting names (keys of the views' <stem>.meta.json)")
+    if len(set(value)) != len(value):
+        _fail(key, value, "each setting name once")
+    return tuple(value)
+
+
 _positive_int = _number(_is_positive, "a positive integer", integer=True)
 _positive = _number(_is_positive, "a number > 0")
 _finite = _number(_is_any, "a finite number")
@@ -517,18 +622,19 @@ _CAMERA = _record(
                     "fy": _Key(_positive, required=True),
                     "cx": _Key(_finite, required=True),
                     "cy": _Key(_finite, required=True),
-                }
+                    "distortion": _Key(_distortion),
+                },
+                build=_intrinsics,
             )
         ),
         "abcy16": _Key(
-            _record(
-                {
-                    "scale": _Key(_positive, default=ABCY16_DEFAULT["scale"]),
-                    "offset": _Key(_offset, default=list(ABCY16_DEFAULT["offset"])),
-                }
-            ),
+            _record({"signed": _Key(_boolean), "scale": _Key(_scale), "offset": _Key(_offset)}, build=abcy16_encoding),
             default={},
         ),
+        "ply_intensity": _Key(_property_name, default=PLY_INTENSITY),
+        "saturation": _Key(_positive),
+        "hand_eye": _Key(_rigid),
+        "match_settings": _Key(_setting_names, default=[]),
     },
     build=Camera,
 )
@@ -650,7 +756,7 @@ class _Builder:
             raise _Invalid(
                 "calibration", "missing; expected a calibration section (wall, reference) or a calibration store"
             )
-        return Campaign(
+        campaign = Campaign(
             root=self.root,
             path=self.yaml_path,
             name=entries["name"] or self.root.name,
@@ -660,6 +766,36 @@ class _Builder:
             specimens={name: self.item(name, "specimen", entry) for name, entry in specimens.items()},
             scenes={name: self.item(name, "scene", entry) for name, entry in scenes.items()},
         )
+        if self.check_views:
+            self.check_settings(campaign)
+        return campaign
+
+    def check_settings(self, campaign: Campaign) -> None:
+        """Check that the settings of ``camera.match_settings`` are equal in every view of the campaign."""
+        calibration = campaign.calibration
+        views = [] if calibration is None else [*calibration.wall, *calibration.reference.views]
+        views += [view for item in campaign.items.values() for view in item.views]
+        key = "camera.match_settings"
+        settings = {}
+        for view in views if self.camera.match_settings else ():
+            with _at_key(key):
+                settings[view] = read_settings(view)
+        for name in self.camera.match_settings:
+            groups: dict[Any, list[str]] = {}
+            for view, values in settings.items():
+                groups.setdefault(values.get(name, _MISSING), []).append(str(view.relative_to(self.root)))
+            if len(groups) > 1:
+                found = "; ".join(
+                    f"{'missing' if value is _MISSING else repr(value)} in {len(names)} view(s): "
+                    f"{', '.join(names[:_SHOWN_VIEWS])}{', ...' if len(names) > _SHOWN_VIEWS else ''}"
+                    for value, names in groups.items()
+                )
+                raise _Invalid(
+                    key,
+                    f"setting {name!r} differs between views ({found}); expected one value in every view of the "
+                    f"calibration and of the items, given by its <stem>.meta.json: acquire them with the same "
+                    f"settings, or remove {name!r} from camera.match_settings",
+                )
 
     def calibration(self, entry: dict) -> Calibration:
         reference = entry["reference"]

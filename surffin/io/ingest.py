@@ -1,4 +1,11 @@
-"""Ingest: an item's view files as one cube with dims (view, y, x[, axis])."""
+"""Ingest: an item's view files as one cube with dims (view, y, x[, axis]).
+
+Saturated pixels (intensity at or above ``camera.saturation``) keep their
+points, which the geometry (angles of incidence, pose registration) uses, but
+are not ``valid``: ``valid`` marks the pixels whose intensity the radiometry may
+use, so the reflectance and every fit after it leave them out. ``saturated``
+marks them and the store's attrs count them per view.
+"""
 
 from __future__ import annotations
 
@@ -48,16 +55,19 @@ def build_cube(views: Sequence[View], crop: Roi) -> xr.Dataset:
     Returns
     -------
     Dataset
-        ``xyz`` (view, y, x, axis) float32 metres, NaN where invalid;
-        ``intensity`` (view, y, x) float32; ``valid`` (view, y, x) bool; and,
-        when any view carries a pose, ``pose`` (view, row, col) float64
-        camera-to-world in metres (NaN for views without one).
+        ``xyz`` (view, y, x, axis) float32 metres, NaN where there is no
+        return; ``intensity`` (view, y, x) float32; ``valid`` (view, y, x)
+        bool, a return with an unsaturated intensity; ``saturated`` (view, y,
+        x) bool, a return with a saturated intensity; and, when any view
+        carries a pose, ``pose`` (view, row, col) float64 camera-to-world in
+        metres (NaN for views without one).
     """
     rows, cols = crop.slices
     stems = [view.path.stem for view in views]
     xyz = np.stack([view.xyz[rows, cols] for view in views]).astype(np.float32)
     intensity = np.stack([view.intensity[rows, cols] for view in views]).astype(np.float32)
-    valid = np.stack([view.valid[rows, cols] for view in views])
+    valid = np.stack([view.radiometric[rows, cols] for view in views])
+    saturated = np.stack([view.valid[rows, cols] for view in views]) & ~valid
     coords = {
         "view": stems,
         "y": np.arange(*crop.y),
@@ -68,7 +78,8 @@ def build_cube(views: Sequence[View], crop: Roi) -> xr.Dataset:
         {
             "xyz": (("view", "y", "x", "axis"), xyz, {"units": "m", "long_name": "point in the camera frame"}),
             "intensity": (("view", "y", "x"), intensity, {"units": "1", "long_name": "camera intensity"}),
-            "valid": (("view", "y", "x"), valid, {"long_name": "pixel has a valid return"}),
+            "valid": (("view", "y", "x"), valid, {"long_name": "valid return, unsaturated intensity"}),
+            "saturated": (("view", "y", "x"), saturated, {"long_name": "valid return, saturated intensity"}),
         },
         coords=coords,
     )
@@ -95,14 +106,18 @@ def ingest_item(campaign: Campaign, name: str) -> xr.Dataset:
     -------
     Dataset
         The cube of :func:`build_cube` with attrs naming the item, its kind,
-        class and reference view, the camera, the crop and provenance (surffin
-        version, source files with sizes and checksums).
+        class and reference view, the camera (everything ``campaign.yaml`` says
+        of it), the crop, per view the saturated pixels inside the crop
+        (``saturated_pixels``) and the acquisition settings (``settings``, from
+        the ``<stem>.meta.json`` sidecars), and provenance (surffin version,
+        source files with sizes and checksums).
     """
     if name not in campaign.items:
         known = ", ".join(campaign.items) or "none"
         raise CampaignError(f"{campaign.path}: no item named {name!r}; the campaign has: {known}")
     item = campaign.items[name]
-    ds = build_cube([campaign.read_view(path) for path in item.views], campaign.crop)
+    views = [campaign.read_view(path) for path in item.views]
+    ds = build_cube(views, campaign.crop)
     inputs = {str(path.relative_to(campaign.root)): describe_file(path) for path in item.views}
     ds.attrs = {
         "item": item.name,
@@ -110,12 +125,10 @@ def ingest_item(campaign: Campaign, name: str) -> xr.Dataset:
         "class": item.cls or "",
         "reference_view": item.reference,
         "campaign": campaign.name,
-        "camera": {
-            "width": campaign.camera.width,
-            "height": campaign.camera.height,
-            "intrinsics": campaign.camera.intrinsics,
-        },
+        "camera": campaign.camera.settings,
         "crop": {"y": list(campaign.crop.y), "x": list(campaign.crop.x)},
+        "saturated_pixels": dict(zip(ds["view"].values.tolist(), ds["saturated"].sum(("y", "x")).values.tolist())),
+        "settings": {view.path.stem: dict(view.settings) for view in views},
         **provenance("ingest", inputs=inputs),
     }
     return ds

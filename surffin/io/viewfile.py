@@ -1,37 +1,40 @@
 """View files: one organized point cloud and intensity image per camera view.
 
 A view holds the full sensor grid (height x width), row-major from the top-left
-pixel, in the camera frame with OpenCV axes (x right, y down, z forward). Three
-forms are read and written, chosen by the file suffix:
+pixel, in the camera frame with OpenCV axes (x right, y down, z forward). A
+pixel is invalid when its xyz has a NaN or its z is <= 0. Three forms are read
+(and written), chosen by the file suffix:
 
 ``.npz``
-    ``xyz`` float (height, width, 3), ``intensity`` numeric (height, width),
-    optional ``pose`` (4, 4); loaded without pickle.
+    ``xyz`` float (height, width, 3), ``intensity`` numeric, optional ``pose``
+    (4, 4); loaded without pickle.
 ``.ply``
-    ``ascii 1.0`` or ``binary_little_endian 1.0`` (``binary_big_endian`` is read
-    too), one ``vertex`` element of width*height vertices with properties ``x``,
-    ``y``, ``z`` (float or double) and ``intensity`` (any numeric type).
+    ascii or binary (either byte order), LF, CRLF or CR line ends; one ``vertex``
+    element of exactly width*height vertices, float ``x``, ``y``, ``z`` and a
+    numeric intensity property (:data:`PLY_INTENSITY_FALLBACKS`).
 ``.raw``
-    The Helios ``Coord3D_ABCY16`` buffer: four little-endian uint16 channels per
-    pixel (A = x, B = y, C = z, Y = intensity), coordinates in mm are
-    ``raw * scale + offset``; 65535 in A, B or C marks an invalid pixel.
+    The Helios ``Coord3D_ABCY16`` buffer (A, B, C uint16, invalid 65535) or its
+    signed form ``Coord3D_ABCY16s`` (int16, invalid -32768), then uint16 Y;
+    mm = ``code * scale + offset`` (:func:`abcy16_encoding`).
 
-A pose (camera-to-world, 4x4, translation in the unit of the file's xyz) is an
-array ``pose`` inside an npz or a sidecar ``<stem>.pose.txt`` of 16 numbers,
-row-major; never both. A pixel is invalid when its xyz has a NaN or its z is
-<= 0 (which covers all-zero xyz).
+Sidecars beside ``<stem>.<form>``: a pose (camera-to-world, or world-from-flange
+with a hand-eye transform) as ``<stem>.pose.txt`` (16 numbers, row-major) or
+``<stem>.pose.json`` (translation and unit quaternion), at most one per view
+counting an npz's ``pose``; acquisition settings as ``<stem>.meta.json``.
 """
 
 from __future__ import annotations
 
 import contextlib
 import io
+import json
+import math
 import zipfile
-from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
 from operator import attrgetter
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import plyfile
@@ -41,31 +44,58 @@ from surffin.io.files import write_atomically
 
 __all__ = [
     "ABCY16_DEFAULT",
+    "ABCY16_SIGNED_OFFSET",
+    "PLY_INTENSITY",
+    "PLY_INTENSITY_FALLBACKS",
     "VIEW_SUFFIXES",
     "POSE_SUFFIX",
+    "POSE_JSON_SUFFIX",
+    "META_SUFFIX",
     "View",
+    "abcy16_encoding",
     "read_view",
     "write_view",
     "list_views",
     "check_view",
+    "read_settings",
+    "pose_problem",
     "pose_sidecar_path",
+    "sidecar_path",
+    "view_sidecars",
     "valid_pixels",
     "npz_headers",
 ]
 
-ABCY16_DEFAULT = {"scale": 0.25, "offset": (-8192.0, -8192.0, 0.0)}
+ABCY16_DEFAULT = {"signed": False, "scale": 0.25, "offset": (-8192.0, -8192.0, 0.0)}
+ABCY16_SIGNED_OFFSET = (0.0, 0.0, 0.0)
+PLY_INTENSITY = "intensity"
+PLY_INTENSITY_FALLBACKS = ("scalar_Intensity", "intensities")
+"""Names of the PLY intensity property that CloudCompare and Open3D write, taken when the named one is absent."""
 VIEW_SUFFIXES = (".npz", ".ply", ".raw")
 POSE_SUFFIX = ".pose.txt"
+POSE_JSON_SUFFIX = ".pose.json"
+META_SUFFIX = ".meta.json"
 
 _METRES_PER_UNIT = {"m": 1.0, "mm": 1e-3}
 _RAW_UNITS = "mm"
-_RAW_INVALID = 65535
 _RAW_CHANNELS = 4
 _RAW_DTYPE = np.dtype("<u2")
+_RAW_SIGNED_DTYPE = np.dtype("<i2")
+_RAW_INVALID = {False: 65535, True: -32768}
+_RAW_CODES = {False: (0, 65534), True: (-32767, 32767)}
+# Codes of the other form, read as this one, sit in the outer half of the 16-bit range (0 <-> 32768
+# swapped): with the usual scale and offset, x and y beyond +-4096 mm, near +-8192 mm, where no
+# Helios pixel (69 x 51 deg, 8.3 m range) can be; C = 32768 is the signed form's invalid marker.
+_RAW_UNSIGNED_CENTRE = 32768
+_RAW_SIGN_OUTER = 16384
+_RAW_SIGN_SHARE = 0.5
+_RAW_SIGN_SAMPLE_ROWS = 32
 _POSE_LAST_ROW_TOLERANCE = 1e-9
 _POSE_ROTATION_TOLERANCE = 1e-6
+_QUATERNION_NORM_TOLERANCE = 1e-3
 _NUMERIC_KINDS = "iuf"
 _PLY_HEADER_LIMIT = 1 << 16
+_PLY_NEWLINES = (b"\r\n", b"\n", b"\r")
 _PLY_FORMATS = {"ascii": "=", "binary_little_endian": "<", "binary_big_endian": ">"}
 _PLY_TYPES = {
     name: np.dtype(code)
@@ -83,7 +113,11 @@ _PLY_TYPES = {
 }
 _PLY_ELEMENT = "vertex"
 _PLY_XYZ = ("x", "y", "z")
-_PLY_INTENSITY = "intensity"
+_PLY_ALL_PIXELS = (
+    "save the PLY again with all pixels (in ArenaView or the Arena SDK, turn filterPoints off when saving "
+    "it), or save the raw Coord3D_ABCY16 buffer (.raw)"
+)
+_POSE_JSON = '{"translation": [x, y, z], "quaternion": [w, x, y, z]}'
 _LOW_LEVEL_ERRORS = (
     ValueError,
     TypeError,
@@ -110,8 +144,13 @@ class View:
     valid : (height, width) ndarray of bool
         Pixels with a usable return.
     pose : (4, 4) ndarray of float64 or None
-        Camera-to-world transform with its translation in metres; None if the
-        view carries no pose.
+        Camera-to-world transform with its translation in metres (the hand-eye
+        transform applied); None if the view carries no pose.
+    saturated : (height, width) ndarray of bool or None
+        Valid pixels whose intensity is at or above the camera's saturation;
+        None when no saturation is given.
+    settings : mapping of str to number or str
+        Acquisition settings from the ``<stem>.meta.json`` sidecar; empty without one.
     """
 
     path: Path
@@ -119,6 +158,28 @@ class View:
     intensity: np.ndarray
     valid: np.ndarray
     pose: np.ndarray | None
+    saturated: np.ndarray | None = None
+    settings: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def radiometric(self) -> np.ndarray:
+        """(height, width) bool: valid pixels whose intensity is not saturated, the ones radiometry may use."""
+        return self.valid if self.saturated is None else self.valid & ~self.saturated
+
+
+class _Decoding(NamedTuple):
+    """How the pixel data of a view file are decoded.
+
+    Attributes
+    ----------
+    abcy16 : dict
+        Complete ABCY16 encoding of raw files (:func:`abcy16_encoding`).
+    ply_intensity : str
+        Preferred name of the PLY intensity property.
+    """
+
+    abcy16: dict
+    ply_intensity: str
 
 
 class _Form(NamedTuple):
@@ -126,25 +187,62 @@ class _Form(NamedTuple):
 
     Attributes
     ----------
-    inspect : callable (path, width, height) -> (4, 4) ndarray or None
+    inspect : callable (path, width, height, decoding) -> (4, 4) ndarray or None
         Cheap structural check; returns the pose stored inside the file (file
         units) or None.
-    load : callable (path, width, height, abcy16) -> (xyz, intensity)
+    load : callable (path, width, height, decoding) -> (xyz, intensity)
         Pixel data: xyz (height, width, 3) in file units, NaN where the form
         itself marks a pixel invalid; intensity (height, width).
     units : str or None
         Unit of xyz fixed by the form, or None when it is the camera's.
     """
 
-    inspect: Callable[[Path, int, int], np.ndarray | None]
-    load: Callable[[Path, int, int, dict], tuple[np.ndarray, np.ndarray]]
+    inspect: Callable[[Path, int, int, _Decoding], np.ndarray | None]
+    load: Callable[[Path, int, int, _Decoding], tuple[np.ndarray, np.ndarray]]
     units: str | None
 
 
-def pose_sidecar_path(path: str | Path) -> Path:
-    """Return the sidecar pose file of a view file: ``<stem>.pose.txt`` beside it."""
+def sidecar_path(path: str | Path, suffix: str) -> Path:
+    """Return the sidecar ``<stem><suffix>`` beside a view file (``suffix``: e.g. :data:`META_SUFFIX`)."""
     path = Path(path)
-    return path.with_name(path.stem + POSE_SUFFIX)
+    return path.with_name(path.stem + suffix)
+
+
+def view_sidecars(path: str | Path) -> list[Path]:
+    """Return the sidecars (pose, settings) that exist beside a view file."""
+    candidates = (sidecar_path(path, suffix) for suffix in (POSE_SUFFIX, POSE_JSON_SUFFIX, META_SUFFIX))
+    return [candidate for candidate in candidates if candidate.is_file()]
+
+
+def pose_sidecar_path(path: str | Path) -> Path:
+    """Return the sidecar pose file of a view file that :func:`write_view` writes: ``<stem>.pose.txt``."""
+    return sidecar_path(path, POSE_SUFFIX)
+
+
+def abcy16_encoding(signed: bool | None = None, scale=None, offset=None) -> dict:
+    """Complete an ABCY16 encoding with the camera's usual values.
+
+    Parameters
+    ----------
+    signed : bool, optional
+        ``Coord3D_ABCY16s`` (int16 A, B, C) if True; default False.
+    scale : float or (3,) floats, optional
+        mm per code, one for all axes or per axis ``[sA, sB, sC]``; default 0.25.
+    offset : (3,) floats, optional
+        mm; default ``(-8192, -8192, 0)``, or :data:`ABCY16_SIGNED_OFFSET` when signed.
+
+    Returns
+    -------
+    dict
+        ``{"signed": bool, "scale": float or tuple, "offset": tuple}``.
+    """
+    signed = bool(signed)
+    if offset is None:
+        offset = ABCY16_SIGNED_OFFSET if signed else ABCY16_DEFAULT["offset"]
+    if scale is None:
+        scale = ABCY16_DEFAULT["scale"]
+    scale = float(scale) if np.ndim(scale) == 0 else tuple(float(value) for value in scale)
+    return {"signed": signed, "scale": scale, "offset": tuple(float(value) for value in offset)}
 
 
 def valid_pixels(xyz: np.ndarray) -> np.ndarray:
@@ -170,7 +268,10 @@ def read_view(
     width: int,
     height: int,
     units: str = "m",
-    abcy16: dict | None = None,
+    abcy16: Mapping | None = None,
+    ply_intensity: str = PLY_INTENSITY,
+    saturation: float | None = None,
+    hand_eye: np.ndarray | None = None,
 ) -> View:
     """Read and validate one view file.
 
@@ -183,9 +284,18 @@ def read_view(
     units : {"m", "mm"}
         Unit of xyz (and pose translation) in npz and ply files; raw files are
         always mm.
-    abcy16 : dict, optional
-        ``{"scale": float, "offset": (3,) floats}`` of raw files, mm;
-        default :data:`ABCY16_DEFAULT`.
+    abcy16 : mapping, optional
+        The keywords of :func:`abcy16_encoding` for raw files; missing ones
+        take their defaults.
+    ply_intensity : str
+        Name of the PLY intensity property; when a file lacks it, the names
+        of :data:`PLY_INTENSITY_FALLBACKS` are taken.
+    saturation : float, optional
+        Intensity at or above which a valid pixel is saturated.
+    hand_eye : (4, 4) array_like, optional
+        Flange-to-camera transform (translation in the file's unit): the
+        stored pose is then world-from-flange, and the view's pose is
+        ``pose @ hand_eye``.
 
     Returns
     -------
@@ -195,13 +305,14 @@ def read_view(
     Raises
     ------
     ViewFileError
-        The file or its pose is unreadable or breaks the contract; the
+        The file or a sidecar is unreadable or breaks the contract; the
         message names the file, the problem and what is expected.
     """
     path = Path(path)
-    form, stored_pose = _inspect(path, width, height)
+    decoding = _decoding(abcy16, ply_intensity)
+    form, stored_pose, settings = _inspect(path, width, height, decoding)
     with _as_view_error(path):
-        xyz, intensity = form.load(path, width, height, ABCY16_DEFAULT if abcy16 is None else abcy16)
+        xyz, intensity = form.load(path, width, height, decoding)
     metres_per_unit = _METRES_PER_UNIT[form.units or _checked_units(units)]
     xyz = np.asarray(xyz, dtype=np.float64) * metres_per_unit
     intensity = np.asarray(intensity, dtype=np.float32)
@@ -216,13 +327,16 @@ def read_view(
             f"{int(valid.sum())} valid pixels (first at row {row}, column {col}: "
             f"{intensity[row, col]}); expected finite values >= 0 (a broken conversion?)"
         )
+    saturated = None if saturation is None else valid & (intensity >= saturation)
     xyz[~valid] = np.nan
     intensity[~valid] = 0.0
     pose = None
     if stored_pose is not None:
         pose = np.array(stored_pose, dtype=np.float64)
+        if hand_eye is not None:
+            pose = pose @ _checked_transform(hand_eye, "hand_eye")
         pose[:3, 3] *= metres_per_unit
-    return View(path=path, xyz=xyz, intensity=intensity, valid=valid, pose=pose)
+    return View(path, xyz, intensity, valid, pose, saturated, settings)
 
 
 def check_view(
@@ -231,27 +345,65 @@ def check_view(
     width: int,
     height: int,
     units: str = "m",
-    abcy16: dict | None = None,
+    abcy16: Mapping | None = None,
+    ply_intensity: str = PLY_INTENSITY,
+    saturation: float | None = None,
+    hand_eye: np.ndarray | None = None,
 ) -> None:
-    """Check a view file's structure cheaply, without reading its pixel data.
+    """Check a view file's structure cheaply, without reading all its pixel data.
 
     npz: member names, dtypes and shapes from the array headers (no pickle);
-    ply: the header and, for binary files, the size; raw: the size. The pose
-    (inside the npz or in the sidecar) is read and checked, and a pose given in
-    both places is refused. Pixel validity is left to :func:`read_view`.
+    ply: the header and, for binary files, the size; raw: the size and, on a
+    sample of rows, that the codes look like the configured signedness. The
+    sidecars (pose, settings) are read and checked, and a view with more than
+    one pose is refused. Pixel validity is left to :func:`read_view`.
 
     Parameters
     ----------
-    path, width, height, units, abcy16
-        As for :func:`read_view`.
+    path, width, height, units, abcy16, ply_intensity, saturation, hand_eye
+        As for :func:`read_view` (``saturation`` is not needed here).
 
     Raises
     ------
     ViewFileError
-        The file or its pose breaks the contract.
+        The file or a sidecar breaks the contract.
     """
     _checked_units(units)
-    _inspect(Path(path), width, height)
+    if hand_eye is not None:
+        _checked_transform(hand_eye, "hand_eye")
+    _inspect(Path(path), width, height, _decoding(abcy16, ply_intensity))
+
+
+def read_settings(path: str | Path) -> dict[str, int | float | str]:
+    """Read the acquisition settings of a view: its ``<stem>.meta.json`` sidecar.
+
+    Parameters
+    ----------
+    path : str or Path
+        The view file.
+
+    Returns
+    -------
+    dict
+        Setting name to a number or a string; empty when there is no sidecar.
+
+    Raises
+    ------
+    ViewFileError
+        The sidecar is unreadable, not one JSON object, or holds a value that
+        is neither a finite number nor a string.
+    """
+    sidecar = sidecar_path(path, META_SUFFIX)
+    if not sidecar.exists():
+        return {}
+    expected = 'expected one JSON object of setting names to numbers or strings, e.g. {"exposure_us": 250}'
+    document = _read_json(sidecar, "settings sidecar", expected)
+    if not isinstance(document, dict):
+        raise ViewFileError(f"{sidecar}: settings sidecar holds {type(document).__name__}; {expected}")
+    for name, value in document.items():
+        if not (isinstance(value, str) or _is_json_number(value)):
+            raise ViewFileError(f"{sidecar}: setting {name!r} is {value!r}; {expected}")
+    return document
 
 
 def write_view(
@@ -263,7 +415,7 @@ def write_view(
     pose: np.ndarray | None = None,
     pose_sidecar: bool = False,
     binary: bool = True,
-    abcy16: dict | None = None,
+    abcy16: Mapping | None = None,
 ) -> None:
     """Write one view file atomically, in the form given by the suffix of ``path``.
 
@@ -286,9 +438,9 @@ def write_view(
         npz. ply and raw poses always go to the sidecar.
     binary : bool
         ply only: ``binary_little_endian 1.0`` if True, else ``ascii 1.0``.
-    abcy16 : dict, optional
-        raw only: ``{"scale", "offset"}`` of the encoding, mm; default
-        :data:`ABCY16_DEFAULT`.
+    abcy16 : mapping, optional
+        raw only: the keywords of :func:`abcy16_encoding` (e.g. ``{"signed":
+        True}`` writes ``Coord3D_ABCY16s``); missing ones take their defaults.
 
     Raises
     ------
@@ -299,8 +451,8 @@ def write_view(
     Notes
     -----
     Every file goes to a temporary name in the same folder and is renamed into
-    place. A sidecar left from an earlier view of the same stem is removed when
-    the new view carries no sidecar pose.
+    place. Pose sidecars left from an earlier view of the same stem
+    (``.pose.txt``, ``.pose.json``) are removed unless this view's pose goes there.
     """
     path = Path(path)
     if path.suffix not in VIEW_SUFFIXES:
@@ -319,7 +471,7 @@ def write_view(
     file_pose = None
     if pose is not None:
         file_pose = np.array(pose, dtype=np.float64)
-        problem = _pose_problem(file_pose)
+        problem = pose_problem(file_pose)
         if problem:
             raise ValueError(f"{path}: malformed pose argument: {problem}")
         file_pose[:3, 3] /= metres_per_unit
@@ -330,12 +482,12 @@ def write_view(
     elif path.suffix == ".ply":
         content = _encode_ply(xyz_file, intensity, binary=binary)
     else:
-        content = _encode_raw(path, xyz_file, intensity, ABCY16_DEFAULT if abcy16 is None else abcy16)
-    sidecar = pose_sidecar_path(path)
+        content = _encode_raw(path, xyz_file, intensity, abcy16_encoding(**(abcy16 or {})))
+    sidecar_path(path, POSE_JSON_SUFFIX).unlink(missing_ok=True)
     if in_sidecar:
-        write_atomically(sidecar, _encode_pose(file_pose))
+        write_atomically(pose_sidecar_path(path), _encode_pose(file_pose))
     else:
-        sidecar.unlink(missing_ok=True)
+        pose_sidecar_path(path).unlink(missing_ok=True)
     write_atomically(path, content)
 
 
@@ -388,44 +540,21 @@ def list_views(folder: str | Path, *, exclude: Iterable[str | Path] = ()) -> lis
     return views
 
 
-def _checked_units(units: str) -> str:
-    if units not in _METRES_PER_UNIT:
-        raise ValueError(f"units {units!r} is not supported; expected one of {sorted(_METRES_PER_UNIT)}")
-    return units
+def pose_problem(pose: np.ndarray) -> str | None:
+    """Say what keeps a 4x4 matrix from being a rigid transform (a pose), or return None if it is one.
 
+    Parameters
+    ----------
+    pose : array_like
+        Expected (4, 4): a rotation (orthonormal, det +1), a translation and
+        the last row ``[0, 0, 0, 1]``.
 
-@contextlib.contextmanager
-def _as_view_error(path: Path) -> Iterator[None]:
-    """Turn the errors of numpy, zipfile and plyfile into a ViewFileError naming ``path``."""
-    try:
-        yield
-    except _LOW_LEVEL_ERRORS as exc:
-        raise ViewFileError(
-            f"{path}: unreadable ({type(exc).__name__}: {exc}); expected a valid {path.suffix} file"
-        ) from exc
-
-
-def _inspect(path: Path, width: int, height: int) -> tuple[_Form, np.ndarray | None]:
-    """Return the form of a view file and its pose (file units), after the cheap checks."""
-    form = _FORMS.get(path.suffix)
-    if form is None:
-        raise ViewFileError(f"{path}: suffix {path.suffix!r} is not a view form; expected one of {VIEW_SUFFIXES}")
-    with _as_view_error(path):
-        stored_pose = form.inspect(path, width, height)
-    if stored_pose is not None:
-        _check_pose(stored_pose, f"{path} (array 'pose')")
-    sidecar = pose_sidecar_path(path)
-    if not sidecar.exists():
-        return form, stored_pose
-    if stored_pose is not None:
-        raise ViewFileError(
-            f"{path}: pose given both inside the npz and in the sidecar {sidecar}; expected one of the two"
-        )
-    return form, _read_pose_sidecar(sidecar)
-
-
-def _pose_problem(pose: np.ndarray) -> str | None:
-    """Say what is wrong with a camera-to-world pose, or return None if it is a rigid transform."""
+    Returns
+    -------
+    str or None
+        What is wrong and what is expected, for an error message.
+    """
+    pose = np.asarray(pose, dtype=np.float64)
     if pose.shape != (4, 4):
         return f"shape {pose.shape}, expected (4, 4)"
     if not np.isfinite(pose).all():
@@ -443,13 +572,69 @@ def _pose_problem(pose: np.ndarray) -> str | None:
     return None
 
 
-def _check_pose(pose: np.ndarray, source: str) -> None:
-    problem = _pose_problem(np.asarray(pose, dtype=np.float64))
+def _checked_units(units: str) -> str:
+    if units not in _METRES_PER_UNIT:
+        raise ValueError(f"units {units!r} is not supported; expected one of {sorted(_METRES_PER_UNIT)}")
+    return units
+
+
+def _checked_transform(matrix: np.ndarray, name: str) -> np.ndarray:
+    problem = pose_problem(matrix)
+    if problem:
+        raise ValueError(f"{name} is not a rigid transform: {problem}")
+    return np.asarray(matrix, dtype=np.float64)
+
+
+def _decoding(abcy16: Mapping | None, ply_intensity: str) -> _Decoding:
+    return _Decoding(abcy16_encoding(**(abcy16 or {})), ply_intensity)
+
+
+def _is_json_number(value: Any) -> bool:
+    """Tell whether a value of :func:`_read_json` is a number (always finite there), not a bool."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+@contextlib.contextmanager
+def _as_view_error(path: Path) -> Iterator[None]:
+    """Turn the errors of numpy, zipfile and plyfile into a ViewFileError naming ``path``."""
+    try:
+        yield
+    except _LOW_LEVEL_ERRORS as exc:
+        raise ViewFileError(
+            f"{path}: unreadable ({type(exc).__name__}: {exc}); expected a valid {path.suffix} file"
+        ) from exc
+
+
+def _inspect(path: Path, width: int, height: int, decoding: _Decoding) -> tuple[_Form, np.ndarray | None, dict]:
+    """Return the form of a view file, its pose (file units) and its settings, after the cheap checks."""
+    form = _FORMS.get(path.suffix)
+    if form is None:
+        raise ViewFileError(f"{path}: suffix {path.suffix!r} is not a view form; expected one of {VIEW_SUFFIXES}")
+    with _as_view_error(path):
+        stored_pose = form.inspect(path, width, height, decoding)
+    poses = {}
+    if stored_pose is not None:
+        poses["the npz's array 'pose'"] = _checked_pose(stored_pose, f"{path} (array 'pose')")
+    for suffix, read in ((POSE_SUFFIX, _read_pose_txt), (POSE_JSON_SUFFIX, _read_pose_json)):
+        sidecar = sidecar_path(path, suffix)
+        if sidecar.exists():
+            poses[str(sidecar)] = read(sidecar)
+    if len(poses) > 1:
+        raise ViewFileError(
+            f"{path}: {len(poses)} poses given: {' and '.join(poses)}; expected at most one pose per view "
+            f"(remove all but one)"
+        )
+    return form, next(iter(poses.values()), None), read_settings(path)
+
+
+def _checked_pose(pose: np.ndarray, source: str) -> np.ndarray:
+    problem = pose_problem(pose)
     if problem:
         raise ViewFileError(f"{source}: malformed pose: {problem}")
+    return np.asarray(pose, dtype=np.float64)
 
 
-def _read_pose_sidecar(sidecar: Path) -> np.ndarray:
+def _read_pose_txt(sidecar: Path) -> np.ndarray:
     try:
         words = sidecar.read_text(encoding="ascii").split()
         numbers = [float(word) for word in words]
@@ -462,9 +647,68 @@ def _read_pose_sidecar(sidecar: Path) -> np.ndarray:
             f"{sidecar}: pose sidecar holds {len(numbers)} numbers; expected 16 whitespace-separated "
             f"numbers (a 4x4 camera-to-world matrix, row-major)"
         )
-    pose = np.array(numbers, dtype=np.float64).reshape(4, 4)
-    _check_pose(pose, str(sidecar))
+    return _checked_pose(np.array(numbers, dtype=np.float64).reshape(4, 4), str(sidecar))
+
+
+def _read_pose_json(sidecar: Path) -> np.ndarray:
+    expected = f"expected {_POSE_JSON} (translation in the view file's unit)"
+    document = _read_json(sidecar, "pose sidecar", expected)
+    if not isinstance(document, dict) or sorted(document) != ["quaternion", "translation"]:
+        raise ViewFileError(f"{sidecar}: pose sidecar holds {str(document)[:80]}; {expected}")
+    for name, size in (("translation", 3), ("quaternion", 4)):
+        value = document[name]
+        if not (isinstance(value, list) and len(value) == size and all(map(_is_json_number, value))):
+            raise ViewFileError(f"{sidecar}: {name!r} is {value!r}; expected {size} finite numbers: {expected}")
+    quaternion = np.array(document["quaternion"], dtype=np.float64)
+    norm = float(np.linalg.norm(quaternion))
+    if abs(norm - 1.0) > _QUATERNION_NORM_TOLERANCE:
+        raise ViewFileError(
+            f"{sidecar}: 'quaternion' {document['quaternion']} has norm {norm:.6g}; expected a unit quaternion "
+            f"[w, x, y, z] (norm within {_QUATERNION_NORM_TOLERANCE:g} of 1)"
+        )
+    pose = np.eye(4)
+    pose[:3, :3] = _rotation_matrix(quaternion / norm)
+    pose[:3, 3] = document["translation"]
     return pose
+
+
+def _rotation_matrix(quaternion: np.ndarray) -> np.ndarray:
+    """Return the rotation (3, 3) of a unit quaternion ``[w, x, y, z]`` (Hamilton convention)."""
+    w, x, y, z = quaternion
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict:
+    names = [name for name, _ in pairs]
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise ValueError(f"repeated key(s) {repeated}")
+    return dict(pairs)
+
+
+def _finite(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"{text} is not a finite number")
+    return value
+
+
+def _read_json(sidecar: Path, what: str, expected: str) -> Any:
+    try:
+        return json.loads(
+            sidecar.read_text(encoding="utf-8"),
+            object_pairs_hook=_unique_keys,
+            parse_float=_finite,
+            parse_constant=_finite,
+        )
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise ViewFileError(f"{sidecar}: unreadable {what} ({exc}); {expected}") from exc
 
 
 def _encode_pose(pose: np.ndarray) -> bytes:
@@ -527,7 +771,7 @@ def npz_headers(path: str | Path) -> dict[str, tuple[tuple[int, ...], np.dtype]]
     return headers
 
 
-def _inspect_npz(path: Path, width: int, height: int) -> np.ndarray | None:
+def _inspect_npz(path: Path, width: int, height: int, decoding: _Decoding) -> np.ndarray | None:
     headers = npz_headers(path)
     expected = [
         ("xyz", (height, width, 3), "f", "a float", True),
@@ -553,7 +797,7 @@ def _inspect_npz(path: Path, width: int, height: int) -> np.ndarray | None:
         return arrays["pose"]
 
 
-def _load_npz(path: Path, width: int, height: int, abcy16: dict) -> tuple[np.ndarray, np.ndarray]:
+def _load_npz(path: Path, width: int, height: int, decoding: _Decoding) -> tuple[np.ndarray, np.ndarray]:
     with np.load(path, allow_pickle=False) as arrays:
         return arrays["xyz"], arrays["intensity"]
 
@@ -591,14 +835,15 @@ class _PlyHeader(NamedTuple):
 def _read_ply_header(path: Path) -> _PlyHeader:
     with open(path, "rb") as stream:
         head = stream.read(_PLY_HEADER_LIMIT)
-    lines = head.split(b"\n")
-    if lines[0].rstrip(b"\r") != b"ply":
+    newline = next((ending for ending in _PLY_NEWLINES if head.startswith(b"ply" + ending)), None)
+    if newline is None:
         raise ViewFileError(f"{path}: does not start with the line 'ply'; expected a PLY file")
+    lines = head.split(newline)
     byte_order = None
     elements: list[tuple[str, int, dict[str, np.dtype | None]]] = []
-    size = len(lines[0]) + 1
+    size = len(lines[0]) + len(newline)
     for number, raw_line in enumerate(lines[1:-1], start=2):
-        size += len(raw_line) + 1
+        size += len(raw_line) + len(newline)
         words = raw_line.decode("ascii", errors="replace").split()
         keyword = words[0] if words else ""
         if keyword == "end_header":
@@ -623,7 +868,13 @@ def _read_ply_header(path: Path) -> _PlyHeader:
     )
 
 
-def _inspect_ply(path: Path, width: int, height: int) -> None:
+def _ply_intensity_name(properties: Iterable[str], preferred: str) -> str | None:
+    """Return the intensity property of a vertex element: ``preferred``, else the first known name present."""
+    present = set(properties)
+    return next((name for name in (preferred, *PLY_INTENSITY_FALLBACKS) if name in present), None)
+
+
+def _inspect_ply(path: Path, width: int, height: int, decoding: _Decoding) -> None:
     header = _read_ply_header(path)
     vertices = [element for element in header.elements if element[0] == _PLY_ELEMENT]
     if len(vertices) != 1:
@@ -632,16 +883,29 @@ def _inspect_ply(path: Path, width: int, height: int) -> None:
             f"(elements: {[element[0] for element in header.elements]})"
         )
     _, count, properties = vertices[0]
+    expected = f"width*height = {width}*{height} = {width * height}"
+    if count < width * height:
+        raise ViewFileError(
+            f"{path}: {count} vertices, fewer than {expected}: the file keeps only some pixels (an Arena SDK "
+            f"export with filterPoints on drops the invalid ones), so the sensor grid is lost; {_PLY_ALL_PIXELS}"
+        )
     if count != width * height:
-        raise ViewFileError(f"{path}: {count} vertices; expected width*height = {width}*{height} = {width * height}")
-    for name in (*_PLY_XYZ, _PLY_INTENSITY):
+        raise ViewFileError(f"{path}: {count} vertices; expected {expected}")
+    intensity = _ply_intensity_name(properties, decoding.ply_intensity)
+    if intensity is None:
+        names = ", ".join(dict.fromkeys((decoding.ply_intensity, *PLY_INTENSITY_FALLBACKS)))
+        raise ViewFileError(
+            f"{path}: no vertex property of the intensity ({names}); expected a scalar numeric property, named "
+            f"by camera.ply_intensity in campaign.yaml (properties: {list(properties)})"
+        )
+    for name in (*_PLY_XYZ, intensity):
         dtype = properties.get(name)
         kinds = "f" if name in _PLY_XYZ else _NUMERIC_KINDS
         if dtype is None or dtype.kind not in kinds:
+            found = ("a list" if name in properties else "missing") if dtype is None else dtype
             raise ViewFileError(
-                f"{path}: vertex property {name!r} is {'missing or a list' if dtype is None else dtype}; "
-                f"expected a scalar {'float or double' if kinds == 'f' else 'numeric'} property "
-                f"(properties: {list(properties)})"
+                f"{path}: vertex property {name!r} is {found}; expected a scalar "
+                f"{'float or double' if kinds == 'f' else 'numeric'} property (properties: {list(properties)})"
             )
     if header.byte_order == "=":
         return
@@ -655,15 +919,16 @@ def _inspect_ply(path: Path, width: int, height: int) -> None:
         raise ViewFileError(f"{path}: truncated PLY: {actual} bytes; expected at least {needed}")
 
 
-def _load_ply(path: Path, width: int, height: int, abcy16: dict) -> tuple[np.ndarray, np.ndarray]:
+def _load_ply(path: Path, width: int, height: int, decoding: _Decoding) -> tuple[np.ndarray, np.ndarray]:
     vertex = plyfile.PlyData.read(path)[_PLY_ELEMENT]
+    intensity_name = _ply_intensity_name((prop.name for prop in vertex.properties), decoding.ply_intensity)
     xyz = np.stack([np.asarray(vertex[name], dtype=np.float64) for name in _PLY_XYZ], axis=-1)
-    intensity = np.array(vertex[_PLY_INTENSITY], dtype=np.float32)
+    intensity = np.array(vertex[intensity_name], dtype=np.float32)
     return xyz.reshape(height, width, 3), intensity.reshape(height, width)
 
 
 def _encode_ply(xyz: np.ndarray, intensity: np.ndarray, *, binary: bool) -> bytes:
-    fields = (*_PLY_XYZ, _PLY_INTENSITY)
+    fields = (*_PLY_XYZ, PLY_INTENSITY)
     table = np.column_stack([xyz.reshape(-1, 3), intensity.reshape(-1)]).astype(np.float32)
     vertices = np.empty(table.shape[0], dtype=[(name, np.float32) for name in fields])
     for column, name in enumerate(fields):
@@ -678,45 +943,74 @@ def _encode_ply(xyz: np.ndarray, intensity: np.ndarray, *, binary: bool) -> byte
     return buffer.getvalue()
 
 
-# --- raw (Coord3D_ABCY16) ----------------------------------------------------------------------
+# --- raw (Coord3D_ABCY16, Coord3D_ABCY16s) ---------------------------------------------------------
 
 
-def _inspect_raw(path: Path, width: int, height: int) -> None:
-    expected = width * height * _RAW_CHANNELS * _RAW_DTYPE.itemsize
+def _inspect_raw(path: Path, width: int, height: int, decoding: _Decoding) -> None:
+    pixel_bytes = _RAW_CHANNELS * _RAW_DTYPE.itemsize
+    expected = width * height * pixel_bytes
     actual = path.stat().st_size
     if actual != expected:
         raise ViewFileError(
             f"{path}: {actual} bytes; expected width*height*8 = {expected} bytes "
-            f"(Coord3D_ABCY16: four uint16 channels per pixel)"
+            f"(Coord3D_ABCY16: four 16-bit channels per pixel)"
         )
+    rows = np.unique(np.linspace(0, height - 1, min(height, _RAW_SIGN_SAMPLE_ROWS)).astype(int))
+    with open(path, "rb") as stream:
+        sample = []
+        for row in rows:
+            stream.seek(int(row) * width * pixel_bytes)
+            sample.append(np.frombuffer(stream.read(width * pixel_bytes), dtype=_RAW_DTYPE))
+    _decode_raw(path, np.stack(sample).reshape(len(rows), width, _RAW_CHANNELS), decoding.abcy16)
 
 
-def _abcy16_scale_offset(abcy16: dict) -> tuple[float, np.ndarray]:
-    return float(abcy16["scale"]), np.asarray(abcy16["offset"], dtype=np.float64)
-
-
-def _load_raw(path: Path, width: int, height: int, abcy16: dict) -> tuple[np.ndarray, np.ndarray]:
-    scale, offset = _abcy16_scale_offset(abcy16)
+def _load_raw(path: Path, width: int, height: int, decoding: _Decoding) -> tuple[np.ndarray, np.ndarray]:
     channels = np.fromfile(path, dtype=_RAW_DTYPE).reshape(height, width, _RAW_CHANNELS)
-    codes = channels[..., :3]
-    xyz = codes * scale + offset
-    xyz[(codes == _RAW_INVALID).any(axis=-1)] = np.nan
-    return xyz, channels[..., 3]
+    return _decode_raw(path, channels, decoding.abcy16), channels[..., 3]
+
+
+def _decode_raw(path: Path, channels: np.ndarray, abcy16: dict) -> np.ndarray:
+    """Decode uint16 channels (..., 4) to xyz (..., 3) mm, NaN where invalid; refuse data of the other signedness."""
+    signed = abcy16["signed"]
+    codes = channels[..., :3].view(_RAW_SIGNED_DTYPE) if signed else channels[..., :3]
+    xyz = codes * np.asarray(abcy16["scale"], dtype=np.float64) + np.asarray(abcy16["offset"], dtype=np.float64)
+    xyz[(codes == _RAW_INVALID[signed]).any(axis=-1)] = np.nan
+    valid = valid_pixels(xyz)
+    centred = codes.astype(np.int32) - (0 if signed else _RAW_UNSIGNED_CENTRE)
+    outer = (np.abs(centred[..., :2]) >= _RAW_SIGN_OUTER).any(axis=-1)
+    if not signed:
+        outer |= codes[..., 2] == _RAW_UNSIGNED_CENTRE
+    odd = int((valid & outer).sum())
+    if odd > _RAW_SIGN_SHARE * valid.sum():
+        form, other = ("Coord3D_ABCY16s", "Coord3D_ABCY16") if signed else ("Coord3D_ABCY16", "Coord3D_ABCY16s")
+        usual = list(ABCY16_DEFAULT["offset"] if signed else ABCY16_SIGNED_OFFSET)
+        raise ViewFileError(
+            f"{path}: looks like {other} data, not {form} (camera.abcy16.signed: {str(signed).lower()}): {odd} of "
+            f"{int(valid.sum())} valid pixels have x or y codes in the outer half of the 16-bit range (near "
+            f"+-8192 mm with the usual scale and offset) or the other form's invalid marker; expected "
+            f"{form}: set camera.abcy16.signed: {str(not signed).lower()} (usual offset {usual}) if the camera "
+            f"saved {other}"
+        )
+    return xyz
 
 
 def _encode_raw(path: Path, xyz: np.ndarray, intensity: np.ndarray, abcy16: dict) -> bytes:
-    scale, offset = _abcy16_scale_offset(abcy16)
+    signed = abcy16["signed"]
+    scale, offset = (np.asarray(abcy16[key], dtype=np.float64) for key in ("scale", "offset"))
+    low, high = _RAW_CODES[signed]
     valid = valid_pixels(xyz)
-    channels = np.full((*xyz.shape[:2], _RAW_CHANNELS), _RAW_INVALID, dtype=_RAW_DTYPE)
     codes = np.rint((xyz[valid] - offset) / scale)
-    if codes.size and (codes.min() < 0 or codes.max() >= _RAW_INVALID):
+    if codes.size and (codes.min() < low or codes.max() > high):
         raise ValueError(
             f"{path}: valid points span ABCY16 codes {codes.min():.0f}..{codes.max():.0f}; expected "
-            f"0..{_RAW_INVALID - 1} (xyz in mm = code * {scale} + {offset.tolist()})"
+            f"{low}..{high} (xyz in mm = code * {abcy16['scale']} + {list(abcy16['offset'])})"
         )
-    channels[valid, :3] = codes
+    coordinates = np.full((*xyz.shape[:2], 3), _RAW_INVALID[signed], dtype=_RAW_SIGNED_DTYPE if signed else _RAW_DTYPE)
+    coordinates[valid] = codes
+    channels = np.empty((*xyz.shape[:2], _RAW_CHANNELS), dtype=_RAW_DTYPE)
+    channels[..., :3] = coordinates.view(_RAW_DTYPE)
     level = np.nan_to_num(np.asarray(intensity, dtype=np.float64), nan=0.0)
-    channels[..., 3] = np.clip(np.rint(level), 0, _RAW_INVALID)
+    channels[..., 3] = np.clip(np.rint(level), 0, np.iinfo(_RAW_DTYPE).max)
     return channels.tobytes()
 
 

@@ -40,6 +40,7 @@ import xarray as xr
 from surffin.errors import CalibrationError, StoreError
 from surffin.io.ingest import describe_file
 from surffin.io.store import open_store, provenance
+from surffin.io.viewfile import read_settings
 from surffin.method.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW, DEFAULT_WINDOW, frame_angle_of_incidence
 from surffin.method.noise import NOISE_VIEWS, NoiseStatistics
 
@@ -152,7 +153,10 @@ class Observation(NamedTuple):
     distance : (H, W) ndarray of float, metres
     aoi : (H, W) ndarray of float, radians
     valid : (H, W) ndarray of bool
-        Pixels with a return; pixels with a NaN distance or AOI are left out too.
+        Pixels with a return and an unsaturated intensity; pixels with a NaN
+        distance or AOI are left out too.
+    saturated : int
+        Pixels with a return whose intensity is saturated (left out of ``valid``).
     """
 
     name: str
@@ -160,6 +164,7 @@ class Observation(NamedTuple):
     distance: np.ndarray
     aoi: np.ndarray
     valid: np.ndarray
+    saturated: int = 0
 
 
 def _usable(intensity, distance, aoi, valid) -> tuple[np.ndarray, ...]:
@@ -897,11 +902,13 @@ def observe_view(campaign: Campaign, path: os.PathLike, aoi: Mapping) -> Observa
     Returns
     -------
     Observation
-        The view's intensity, distance (m), AOI (rad) and valid mask on the full sensor.
+        The view's intensity, distance (m), AOI (rad) and valid mask on the full sensor; saturated
+        pixels are not valid, but their points take part in the AOI.
     """
     view = campaign.read_view(path)
     aoi, distance = frame_angle_of_incidence(view.xyz, aoi["window"], jump=aoi["jump"], max_window=aoi["max_window"])
-    return Observation(str(path), view.intensity, distance, aoi, view.valid)
+    saturated = int(view.valid.sum() - view.radiometric.sum())
+    return Observation(str(path), view.intensity, distance, aoi, view.radiometric, saturated)
 
 
 def calibration_set(campaign: Campaign, wall: str, reference: str) -> Calibration:
@@ -1016,7 +1023,9 @@ def calibrate(
         :func:`reference_scale`), ``diagnostics``
         (:func:`calibration_diagnostics`), ``campaign``, ``calibration_set``
         (``{"wall", "reference"}`` folders of the views, relative to the
-        campaign directory) and provenance.
+        campaign directory), per view file (relative to the campaign directory)
+        ``saturated_pixels`` (left out of the fit and the scale) and
+        ``settings`` (its ``<stem>.meta.json``), and provenance.
 
     Raises
     ------
@@ -1059,8 +1068,10 @@ def calibrate(
     aoi = {"window": window, "jump": jump, "max_window": max_window}
     stats = WallStatistics((campaign.camera.height, campaign.camera.width))
     samples = _WallSamples(campaign.crop, len(wall))
+    saturated = {}
     for path in wall:
         view = observe_view(campaign, path, aoi)
+        saturated[str(path.relative_to(campaign.root))] = view.saturated
         stats.add(view.intensity, view.distance, view.aoi, view.valid)
         samples.add(view, path.stem)
         advance(path)
@@ -1082,7 +1093,9 @@ def calibrate(
 
     def panel_views():
         for path in reference.views:
-            yield observe_view(campaign, path, aoi)
+            view = observe_view(campaign, path, aoi)
+            saturated[str(path.relative_to(campaign.root))] = view.saturated
+            yield view
             advance(path)
 
     scale_k, details = reference_scale(ds["coef"].values, panel_views(), reference.roi, reference.reflectance)
@@ -1096,6 +1109,7 @@ def calibrate(
     )
     parameters = {**aoi, "min_obs": min_obs, "angular_smoothing": angular_smoothing, "exclude": sorted(excluded)}
     inputs = {str(path.relative_to(campaign.root)): describe_file(path) for path in (*wall, *reference.views)}
+    settings = {str(path.relative_to(campaign.root)): read_settings(path) for path in (*wall, *reference.views)}
     return (
         ds.merge(samples.dataset(ds["coef"].values, scale_k))
         .merge(noise.dataset())
@@ -1106,6 +1120,8 @@ def calibrate(
             diagnostics=diagnostics,
             campaign=campaign.name,
             calibration_set=folders,
+            saturated_pixels=saturated,
+            settings=settings,
             **provenance("calibration", parameters, inputs),
         )
     )

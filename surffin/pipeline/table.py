@@ -62,8 +62,8 @@ def _chain(name: str, version: int) -> Stage:
 STAGES = {
     stage.name: stage
     for stage in (
-        Stage("calibration", calibrate, ("views",), "calibration.zarr", 4),
-        Stage("ingest", ingest_item, ("views",), "ingest/{item}.zarr", 2),
+        Stage("calibration", calibrate, ("views",), "calibration.zarr", 5),
+        Stage("ingest", ingest_item, ("views",), "ingest/{item}.zarr", 3),
         _chain("aoi", 3),
         _chain("reflectance", 3),
         _chain("registration", 2),

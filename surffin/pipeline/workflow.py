@@ -14,13 +14,20 @@ from dataclasses import dataclass
 from functools import cached_property
 
 from surffin.analysis.diagnostics import representative_specimens
+from surffin.errors import CampaignError
 from surffin.io.campaign import Calibration, Campaign, read_campaign
+from surffin.io.viewfile import view_sidecars
 from surffin.method.calibration import calibration_set, check_calibration
 from surffin.method.roughness import MIN_SPECIMENS
 from surffin.pipeline.parameters import aoi_parameters, feature_parameters
 from surffin.pipeline.table import output_path
 
 __all__ = ["Plan"]
+
+
+def _with_sidecars(views) -> list[str]:
+    # A view's pose and settings sidecars are inputs of the jobs that read it: editing one reruns them.
+    return [str(path) for view in views for path in (view, *view_sidecars(view))]
 
 
 @dataclass(frozen=True)
@@ -48,9 +55,17 @@ class Plan:
         Raises
         ------
         SurffinError
-            The campaign, or the calibration store it is given, is not usable.
+            The campaign, or the calibration store it is given, is not usable, or the campaign has scenes
+            but nothing to train their classifier on (no specimens, no ``extra_training`` stores).
         """
         camp = read_campaign(path, require_calibration=config["calibration_store"] is None)
+        if camp.scenes and not camp.specimens and not config["extra_training"]:
+            raise CampaignError(
+                f"{camp.path}: specimens: none, and the configuration names no extra_training stores, so there is "
+                f"nothing to train the classifier of the scenes ({', '.join(camp.scenes)}) on; expected specimens "
+                f"of known class in campaign.yaml, or training.zarr stores of other campaigns in the "
+                f"configuration's extra_training"
+            )
         if config["calibration_store"] is not None:
             check_calibration(config["calibration_store"], camp)
         folders = config["calibration_repeat"]
@@ -76,21 +91,15 @@ class Plan:
         return None if roi is None else roi.as_mapping()
 
     def item_views(self, name: str) -> list[str]:
-        """Return an item's view files."""
-        return [str(path) for path in self.campaign.items[name].views]
+        """Return an item's view files and their sidecars (pose, settings): a change to any reruns its ingest."""
+        return _with_sidecars(self.campaign.items[name].views)
 
     def item_settings(self, name: str) -> dict:
         """Return what campaign.yaml says about one item and the camera: a change reruns that item."""
-        item, camera = self.campaign.items[name], self.campaign.camera
+        item = self.campaign.items[name]
         return {
             "crop": self.campaign.crop.as_mapping(),
-            "camera": {
-                "width": camera.width,
-                "height": camera.height,
-                "units": camera.units,
-                "abcy16": camera.abcy16,
-                "intrinsics": camera.intrinsics,
-            },
+            "camera": self.campaign.camera.settings,
             "reference": item.reference,
             "class": item.cls,
         }
@@ -150,14 +159,14 @@ class Plan:
     # --- calibration and its diagnostics -----------------------------------------------------
 
     def calibration_views(self) -> list[str]:
-        """Return the calibration set's view files: the wall views, then the reference views."""
+        """Return the calibration set's view files (the wall views, then the reference views) and their sidecars."""
         cal = self.campaign.calibration
-        return [str(path) for path in (*cal.wall, *cal.reference.views)]
+        return _with_sidecars((*cal.wall, *cal.reference.views))
 
     def calibration_settings(self) -> dict:
-        """Return the reference panel's reflectance and roi: a change reruns the calibration."""
+        """Return the reference panel's reflectance and roi and the camera: a change reruns the calibration."""
         ref = self.campaign.calibration.reference
-        return {"reflectance": ref.reflectance, "roi": ref.roi.as_mapping()}
+        return {"reflectance": ref.reflectance, "roi": ref.roi.as_mapping(), "camera": self.campaign.camera.settings}
 
     def repeat_views(self) -> list[str]:
         """Return the repeat calibration set's view files: the wall views, then the reference views."""
