@@ -1,6 +1,7 @@
-"""AOI and plane normals from organized clouds (surffin.method.geometry) against independent references."""
+"""AOI, plane normals and mixed pixels of organized clouds (surffin.method.geometry) against independent references."""
 
 import warnings
+from dataclasses import replace
 
 import dask
 import numpy as np
@@ -9,14 +10,20 @@ import xarray as xr
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import surffin
+from surffin.io.ingest import ingest_item
+from surffin.method.calibration import TERMS
 from surffin.method.geometry import (
     DEFAULT_JUMP,
     DEFAULT_MAX_WINDOW,
     DEFAULT_WINDOW,
     angle_of_incidence,
     frame_angle_of_incidence,
+    mixed_pixels,
     plane_normals,
 )
+from surffin.method.stages import aoi_stage, reflectance_stage
+from surffin.simulate.presets import PRESETS
 
 FOCAL = 565.0
 
@@ -534,3 +541,248 @@ def test_bad_dims_raise():
         angle_of_incidence(xyz.assign_coords(axis=["a", "b", "c"]))
     with pytest.raises(ValueError, match="size 3"):
         angle_of_incidence(xyz.drop_vars("axis").isel(axis=[0, 1]))
+
+
+# (8) mixed (flying) pixels ---------------------------------------------------------------------------
+
+
+def mixed(xyz, **kwargs):
+    """:func:`mixed_pixels` of one frame (H, W, 3): (H, W) bool."""
+    return mixed_pixels(xr.DataArray(np.asarray(xyz)[None], dims=("view", "y", "x", "axis")), **kwargs).values[0]
+
+
+def edge_scene(orientation, tilt, near=0.5, step=0.1, noise=1e-3, seed=0, height=240, width=320):
+    """A plane ``near`` m away in front of a parallel one ``step`` m behind, both tilted by ``tilt`` deg about x.
+
+    The foreground holds the pixels left of (``column``), above (``row``) or left of a slanted line
+    (``slanted``) through the image centre. Half of its pixels next to the background, drawn at random,
+    are made mixed: the point along the ray at ``(1 - w) r_near + w r_far``, w uniform in 0.2-0.8.
+    Returns the points with ``noise`` m along each ray, the foreground mask and the mixed mask.
+    """
+    rng = np.random.default_rng(seed)
+    rows, cols = np.mgrid[0:height, 0:width]
+    foreground = {
+        "column": cols < width // 2,
+        "row": rows < height // 2,
+        "slanted": cols - width / 2 < 0.4 * (rows - height / 2),
+    }[orientation]
+    normal = [0.0, np.sin(np.deg2rad(tilt)), -np.cos(np.deg2rad(tilt))]
+    front, _, _ = plane(normal, near * np.cos(np.deg2rad(tilt)), height, width)
+    back, _, _ = plane(normal, (near + step) * np.cos(np.deg2rad(tilt)), height, width)
+    xyz = np.where(foreground[..., None], front, back)
+    beside = np.zeros_like(foreground)
+    beside[:-1] |= ~foreground[1:]
+    beside[1:] |= ~foreground[:-1]
+    beside[:, :-1] |= ~foreground[:, 1:]
+    beside[:, 1:] |= ~foreground[:, :-1]
+    inserted = foreground & beside & (rng.random(foreground.shape) < 0.5)
+    weight = rng.uniform(0.2, 0.8, foreground.shape)[..., None]
+    xyz = np.where(inserted[..., None], (1 - weight) * front + weight * back, xyz)
+    ray = rays(height, width)
+    return xyz + ray * rng.normal(0.0, noise, foreground.shape)[..., None], foreground, inserted
+
+
+def near_pixels(mask):
+    """Pixels within one pixel (8-neighbourhood) of ``mask``."""
+    near = mask.copy()
+    near[1:] |= mask[:-1]
+    near[:-1] |= mask[1:]
+    near[:, 1:] |= near[:, :-1].copy()
+    near[:, :-1] |= near[:, 1:].copy()
+    return near
+
+
+@pytest.mark.parametrize("tilt", [0.0, 35.0])
+@pytest.mark.parametrize("orientation", ["column", "row", "slanted"])
+def test_inserted_mixed_pixels_are_found_and_true_edges_kept(orientation, tilt):
+    found, inserted_total, edge_flagged, edge_total, elsewhere = 0, 0, 0, 0, 0
+    for seed in range(3):
+        xyz, foreground, inserted = edge_scene(orientation, tilt, seed=seed)
+        flagged = mixed(xyz)
+        found += flagged[inserted].sum()
+        inserted_total += inserted.sum()
+        # the pure pixels of either surface at the edge: beside an inserted pixel or the other surface
+        boundary = near_pixels(inserted) | near_pixels(foreground) & near_pixels(~foreground)
+        edge = boundary & ~inserted
+        edge_flagged += flagged[edge].sum()
+        edge_total += edge.sum()
+        elsewhere += flagged[~boundary].sum()
+    assert inserted_total > 300
+    assert found / inserted_total >= 0.95  # measured 0.98-1.00
+    assert edge_flagged / edge_total < 0.01  # measured 0
+    assert elsewhere == 0
+
+
+@pytest.mark.parametrize("focal", [70.0, 565.0, 1130.0])
+def test_mixed_pixels_are_found_down_to_the_stated_split(focal):
+    # fronto-parallel planes, a column of pixels between them splitting the step into two equal parts:
+    # found when each part exceeds jump / 2 plus the rise of an 80 deg slope over the ray spacing
+    limit = DEFAULT_JUMP / 2 + np.tan(np.deg2rad(80.0)) / focal
+    for factor, found in ((1.1, True), (0.9, False)):
+        log_depth = np.full((20, 30), np.log(0.5))
+        log_depth[:, 15] += factor * limit
+        log_depth[:, 16:] += 2 * factor * limit
+        xyz = rays(20, 30, focal) * np.exp(log_depth)[..., None] / rays(20, 30, focal)[..., 2:]
+        flagged = mixed(xyz)
+        assert flagged[2:-2, 15].all() == found
+        assert not flagged[:, np.r_[0:15, 16:30]].any()
+
+
+@pytest.mark.parametrize("tilt", [0.0, 20.0, 40.0, 60.0])
+def test_clean_planes_have_no_mixed_pixels(tilt):
+    # 1 mm range noise at 0.5 m, 480 x 640; at 60 deg tilt about y the AOI reaches 89 deg at the image side
+    flagged = 0
+    for axis in (0, 1):
+        normal = np.zeros(3)
+        normal[axis], normal[2] = np.sin(np.deg2rad(tilt)), -np.cos(np.deg2rad(tilt))
+        xyz, _, _ = plane(normal, 0.5 * np.cos(np.deg2rad(tilt)), 480, 640, noise=1e-3, seed=axis)
+        flagged += mixed(xyz).sum()
+    assert flagged / (2 * 480 * 640) < 1e-3  # measured 0
+
+
+def cylinder(axis, inside=False, radius=0.3, centre=0.8, wall=None, noise=1e-3, height=240, width=320):
+    """A cylinder of ``radius`` m, its axis along the image's ``axis`` ("x" or "y") ``centre`` m away.
+
+    Its outside (or ``inside``) is seen; rays that miss it see a wall ``wall`` m away (None: invalid).
+    Returns the points with ``noise`` m along each ray, the mask of the cylinder and its true AOI, deg.
+    """
+    ray = rays(height, width, focal=FOCAL / 3)  # a wide view: the outside is seen up to its silhouettes
+    across = 0 if axis == "y" else 1  # the ray component across the axis, besides z
+    a = ray[..., across] ** 2 + ray[..., 2] ** 2
+    b = -2 * centre * ray[..., 2]
+    discriminant = b * b - 4 * a * (centre**2 - radius**2)
+    on = discriminant > 0
+    root = np.sqrt(np.where(on, discriminant, 0.0))
+    distance = (-b + root if inside else -b - root) / (2 * a)
+    normal = ray * distance[..., None]
+    normal[..., 2] -= centre
+    normal[..., 1 - across] = 0.0
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    aoi = np.rad2deg(np.arccos(np.abs(np.sum(normal * ray, axis=-1))))
+    if wall is not None:
+        distance = np.where(on, distance, wall / ray[..., 2])
+    distance = distance + np.random.default_rng(0).normal(0.0, noise, on.shape)
+    xyz = ray * distance[..., None]
+    if wall is None:
+        xyz[~on] = np.nan
+    return xyz, on, aoi
+
+
+@pytest.mark.parametrize("axis", ["x", "y"])
+def test_curved_surface_has_no_mixed_pixels(axis):
+    # the outside of a cylinder of 0.3 m radius up to its silhouettes (AOI up to 84-89 deg), and an inside
+    for kwargs in ({}, {"inside": True, "centre": 0.15}):
+        xyz, on, aoi = cylinder(axis, **kwargs)
+        assert on.mean() > 0.3
+        assert not mixed(xyz).any()
+    # in front of a wall, the last pixel before a silhouette, whose footprint straddles it, can look mixed
+    # when it sees the cylinder at a grazing angle (measured: flagged at AOI >= 84.8 deg only)
+    for centre in (0.6, 0.7, 0.825):  # silhouettes at several sub-pixel positions
+        xyz, on, aoi = cylinder(axis, centre=centre, wall=1.5)
+        flagged = mixed(xyz)
+        assert not flagged[~on].any()
+        assert (aoi[on & flagged] > 80.0).all()
+        assert not (flagged & ~near_pixels(~on)).any()
+
+
+def test_a_crease_a_steep_face_and_a_spike_are_not_mixed():
+    # a specimen's top and a visible side face (a crease, no depth jump), and a 1 px wide steep face
+    ray = rays(40, 80)
+    faces = [np.array(normal) / np.linalg.norm(normal) for normal in ([0.3, 0.0, -1.0], [-3.0, 0.0, -1.0])]
+    apex = ray[0, 40] * 0.5
+    depths = np.stack([(apex @ normal) / (ray @ normal) for normal in faces])
+    xyz = ray * depths.min(axis=0)[..., None]
+    assert not mixed(xyz).any()
+    offset = np.full((40, 80), 0.5)
+    offset[:, 41:] += 0.004  # the side face of a 4 mm step: one pixel at ~66 deg between two planes
+    xyz, _, _ = plane([0.0, 0.0, -1.0], offset, 40, 80)
+    xyz[:, 41] = ray[:, 41] * (0.5 + 0.002) / ray[:, 41, 2:]
+    assert not mixed(xyz).any()
+    # a spike in front of both its neighbours is no point between two surfaces
+    xyz, _, _ = plane([0.2, 0.1, -1.0], 0.5, 40, 80)
+    xyz[20, 30] *= 0.9
+    assert not mixed(xyz).any()
+
+
+def test_mixed_pixels_layout_invalid_pixels_and_dask():
+    xyz = cube(views=2, height=100, width=120)
+    frame, _, inserted = edge_scene("slanted", 20.0, height=100, width=120)
+    xyz[0] = frame.astype(np.float32)
+    xyz[0, 10:14, 60:64] = np.nan  # holes near the edge leave their neighbours undecided, never mixed
+    flagged = mixed_pixels(xyz)
+    assert flagged.dims == ("view", "y", "x") and flagged.dtype == bool and flagged.name == "mixed"
+    assert flagged.attrs["jump"] == DEFAULT_JUMP and flagged.attrs["long_name"]
+    xr.testing.assert_equal(flagged.y, xyz.y)
+    assert not flagged.values[xyz.isnull().any("axis").values].any()
+    assert flagged[0].values[inserted & np.isfinite(xyz.values[0]).all(-1)].mean() > 0.9
+    np.testing.assert_array_equal(flagged.values[1], mixed(xyz.values[1]))
+    for chunks in ({"view": 1, "y": 37, "x": 41}, {"view": 2, "y": 5, "x": 3}, {"y": 99, "x": 119}):
+        lazy = mixed_pixels(xyz.chunk(chunks))
+        assert lazy.chunks is not None
+        xr.testing.assert_identical(lazy.compute(), flagged)
+
+
+def test_mixed_pixels_bad_input_raises():
+    with pytest.raises(ValueError, match="jump must be a positive finite number"):
+        mixed_pixels(cube(views=1), jump=0)
+    with pytest.raises(ValueError, match=r"missing \['axis'\]"):
+        mixed_pixels(cube(views=1).rename(axis="component"))
+    with pytest.raises(TypeError, match="DataArray"):
+        mixed_pixels(cube(views=1).values)
+
+
+def step_ingest():
+    """An ingest cube of two views: a step with inserted mixed pixels, and a noisy surface with holes."""
+    xyz = cube(views=2, height=100, width=120)
+    frame, _, inserted = edge_scene("column", 20.0, height=100, width=120)
+    xyz[0] = frame.astype(np.float32)
+    intensity = xr.full_like(xyz.isel(axis=0, drop=True), 500.0)
+    return xr.Dataset({"xyz": xyz, "intensity": intensity, "valid": xyz.notnull().all("axis")}), inserted
+
+
+def test_aoi_stage_drops_mixed_pixels_and_counts_them():
+    ingest, inserted = step_ingest()
+    flagged = mixed_pixels(ingest["xyz"])
+    ds = aoi_stage(ingest, window=7)
+    assert ds.attrs["mixed_pixels"] == {"v0": int(flagged[0].sum()), "v1": 0}
+    assert flagged[0].values[inserted].mean() >= 0.95
+    for name in ("aoi", "distance"):
+        assert ds[name].where(flagged).isnull().all()
+    # the same as the AOI of the clouds without them; a view without any is unchanged
+    expected = angle_of_incidence(ingest["xyz"].where(~flagged), window=7)
+    xr.testing.assert_identical(ds.drop_attrs(), expected.drop_attrs())
+    xr.testing.assert_identical(
+        ds.isel(view=1).drop_attrs(), angle_of_incidence(ingest["xyz"], window=7).isel(view=1).drop_attrs()
+    )
+    # the reflectance drops them too
+    coef = xr.DataArray(
+        np.broadcast_to(np.array([0.3, 1.0, -0.25, 0.05, 1.0])[:, None, None], (5, 100, 120)),
+        dims=("term", "y", "x"),
+        coords={"term": list(TERMS), "y": ingest.y, "x": ingest.x},
+    )
+    reflectance = reflectance_stage(ingest, ds, xr.Dataset({"coef": coef}, attrs={"scale_k": 1.0}))["reflectance"]
+    assert reflectance.where(flagged).isnull().all()
+    assert reflectance.notnull().sum() == ds["aoi"].notnull().sum()
+
+
+def test_tiny_preset_has_almost_no_mixed_pixels(tiny_campaign):
+    campaign = surffin.read_campaign(tiny_campaign)
+    flagged = valid = 0
+    for name in campaign.items:
+        xyz = ingest_item(campaign, name)["xyz"]
+        flagged += int(mixed_pixels(xyz).sum())
+        valid += int(xyz.notnull().all("axis").sum())
+    assert valid > 30_000
+    assert flagged <= 5  # measured 0 of 35,750
+
+
+@pytest.mark.slow
+def test_paper_preset_has_almost_no_mixed_pixels(tmp_path):
+    # the paper's camera and items (its calibration set cut to two views: it plays no part here)
+    preset = replace(PRESETS["paper"], wall_distances=(0.5, 0.8), wall_tilts=(0.0,), repeat_calibration=False)
+    campaign = surffin.read_campaign(surffin.simulate_campaign(tmp_path / "raw", preset, 0))
+    flagged = []
+    for name in campaign.items:
+        flagged.extend(mixed_pixels(ingest_item(campaign, name)["xyz"]).sum(("y", "x")).values.tolist())
+    assert len(flagged) == 25
+    assert sum(flagged) <= 20 and max(flagged) <= 5  # measured 1 of 3.8 million (a noisy pixel at a step)

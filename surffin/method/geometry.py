@@ -1,28 +1,27 @@
-"""Angle of incidence and distance from organized point clouds (method step 2).
+"""Angle of incidence and distance from organized point clouds (method step 2), and mixed pixels.
 
 Per pixel i, theta_i = arccos(|v_i . n_i|) and d_i = |P_i|, with v_i the unit ray to the
 point P_i and n_i the normal of a least-squares plane through the valid points of a
 neighbourhood of P_i. The plane is fitted in ray coordinates: a pinhole camera sees the
 plane n . P = c as an inverse depth q = 1/z = a x' + b y' + e, linear in x' = x/z and
-y' = y/z, which carry no range noise; so the ordinary least-squares fit of q has exact
-regressors and no errors-in-variables bias (a PCA plane tilts away from the ray under
-range noise). The ten moments of (x', y', q) are box-summed (cv2.boxFilter, float64,
-centred on the frame's mean), so a window costs the same whatever its size.
+y' = y/z, which carry no range noise; so the least-squares fit of q has no errors-in-variables
+bias (a PCA plane tilts away from the ray under range noise). The ten moments of (x', y', q)
+are box-summed (cv2.boxFilter, float64, centred on the frame's mean): any window costs the same.
 
 Depth discontinuities: two valid neighbours (or a pixel's two neighbours along a row, column
-or diagonal, which catches a band of mixed pixels) are on different surfaces when their
-log-depths differ by more than ``jump`` beyond what a surface at MAX_SLOPE_DEG (80 deg) from
-the plane normal to the ray gives over their own ray spacing (no focal length enters).
+or diagonal) are on different surfaces when their log-depths differ by more than ``jump``
+beyond what a surface at MAX_SLOPE_DEG (80 deg) from the plane normal to the ray gives over
+their own ray spacing (no focal length enters). A mixed pixel, whose footprint straddles such
+an edge, splits it into two steeper-than-80-deg steps between two surfaces (:func:`mixed_pixels`).
 
-The support adapts to the surface. At the base level each eligible pixel (valid, not an
-edge) takes the plane of the first of the 9 windows of ``window`` pixels that contain it
-(centred, or shifted by half a window) whose mean squared depth residual is at most twice
-the smallest: near an edge or a crease it keeps a window on its own face. Each further level
-pools the moments over 2 x 2 cells and doubles the windows, up to ``max_window``: the larger
-plane replaces a pixel's while the chosen window is usable (no edge, half valid) and its
-residual stays within 1.5 times the smallest base residual around the pixel (the local depth
-noise). A larger window on one planar surface averages more noise away; across a crease or
-on a curved surface it fits worse and is refused. Measurements: ``docs/performance.md``.
+The support adapts to the surface. At the base level each eligible pixel (valid, not an edge)
+takes the plane of the first of the 9 windows of ``window`` pixels that contain it (centred, or
+shifted by half a window) whose mean squared depth residual is at most twice the smallest. Each
+further level pools the moments over 2 x 2 cells and doubles the windows, up to ``max_window``:
+the larger plane replaces a pixel's while the chosen window is usable (no edge, half valid) and
+its residual stays within 1.5 times the smallest base residual around the pixel (the local depth
+noise); across a crease or on a curved surface it fits worse and is refused. Measurements:
+``docs/performance.md``.
 """
 
 from __future__ import annotations
@@ -34,7 +33,14 @@ import cv2
 import numpy as np
 import xarray as xr
 
-__all__ = ["angle_of_incidence", "frame_angle_of_incidence", "plane_normals", "DEFAULT_WINDOW", "DEFAULT_JUMP"]
+__all__ = [
+    "angle_of_incidence",
+    "frame_angle_of_incidence",
+    "mixed_pixels",
+    "plane_normals",
+    "DEFAULT_WINDOW",
+    "DEFAULT_JUMP",
+]
 
 #: Default smallest plane-fit window, pixels (side of the square neighbourhood).
 DEFAULT_WINDOW = 15
@@ -94,25 +100,37 @@ def _aligned(shape: tuple[int, int], offsets) -> list[tuple[slice, slice]]:
     return [tuple(slice(low + shift, high + shift) for (low, high), shift in zip(bounds, offset)) for offset in offsets]
 
 
-def _jump_edges(points: np.ndarray, valid: np.ndarray, jump: float) -> np.ndarray:
-    """Edge mask (H, W) bool of the depth discontinuities of one frame (module docstring)."""
+def _log_depth(points: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Log-depth (H, W), NaN at invalid pixels, and ray coordinates x/z, y/z (2, H, W) of one frame, float32."""
     log_z = np.full(valid.shape, np.nan, dtype=np.float32)
     np.log(points[2], out=log_z, where=valid)
     rays = np.zeros((2, *valid.shape), dtype=np.float32)
     for k in range(2):
         np.divide(points[k], points[2], out=rays[k], where=valid)
+    return log_z, rays
+
+
+def _rise(log_z: np.ndarray, rays: np.ndarray, first, second) -> tuple[np.ndarray, np.ndarray]:
+    """Log-depth rise from the pixels ``first`` to ``second`` (slices), and that of a surface at MAX_SLOPE_DEG."""
+    across = rays[0][second] - rays[0][first]
+    along = rays[1][second] - rays[1][first]
+    spacing = across * across
+    spacing += along * along
+    np.sqrt(spacing, out=spacing)
+    spacing *= np.float32(_MAX_SLOPE)
+    return log_z[second] - log_z[first], spacing
+
+
+def _jump_edges(points: np.ndarray, valid: np.ndarray, jump: float) -> np.ndarray:
+    """Edge mask (H, W) bool of the depth discontinuities of one frame (module docstring)."""
+    log_z, rays = _log_depth(points, valid)
     edge = np.zeros(valid.shape, dtype=bool)
 
     def step(first, second) -> np.ndarray:
-        # |d log z| - jump > tan(max slope) * ray spacing, compared in squares
-        excess = np.abs(log_z[first] - log_z[second])
-        excess -= np.float32(jump)
-        across = rays[0][first] - rays[0][second]
-        along = rays[1][first] - rays[1][second]
-        spacing = across * across
-        spacing += along * along
-        spacing *= np.float32(_MAX_SLOPE**2)
-        return (excess > 0) & (excess * excess > spacing)
+        rise, steepest = _rise(log_z, rays, first, second)
+        np.abs(rise, out=rise)
+        rise -= np.float32(jump)
+        return rise > steepest
 
     for dy, dx in _DIRECTIONS:
         first, second = _aligned(valid.shape, ((0, 0), (dy, dx)))
@@ -122,6 +140,29 @@ def _jump_edges(points: np.ndarray, valid: np.ndarray, jump: float) -> np.ndarra
         first, middle, last = _aligned(valid.shape, ((0, 0), (dy, dx), (2 * dy, 2 * dx)))
         edge[middle] |= step(first, last)
     return edge
+
+
+def _mixed(points: np.ndarray, valid: np.ndarray, jump: float) -> np.ndarray:
+    """Mixed-pixel mask (H, W) bool of one frame (:func:`mixed_pixels`)."""
+    log_z, rays = _log_depth(points, valid)
+    mixed = np.zeros(valid.shape, dtype=bool)
+    half = np.float32(jump / 2)
+    for dy, dx in _DIRECTIONS:
+        # the step from each pixel to the next along (dy, dx), stored at the first: a jump up or
+        # down (judged at half the jump), or not steeper than 80 deg up, or down
+        first, second = _aligned(valid.shape, ((0, 0), (dy, dx)))
+        rise, steepest = _rise(log_z, rays, first, second)
+        up, down, not_up, not_down = np.zeros((4, *valid.shape), dtype=bool)
+        np.less_equal(rise, steepest, out=not_up[first])
+        np.greater_equal(rise, -steepest, out=not_down[first])
+        steepest += half
+        np.greater(rise, steepest, out=up[first])
+        np.less(rise, -steepest, out=down[first])
+        # pixel p = q + 2 d: outer step from q, inner steps from q + d and p, outer step from p + d
+        outer, before, after, beyond = _aligned(valid.shape, tuple((k * dy, k * dx) for k in range(4)))
+        mixed[after] |= up[before] & up[after] & not_up[outer] & not_up[beyond]
+        mixed[after] |= down[before] & down[after] & not_down[outer] & not_down[beyond]
+    return mixed
 
 
 def _row_blocks(height: int, width: int) -> list[slice]:
@@ -446,23 +487,16 @@ def _frames(xyz: np.ndarray, window: int, jump: float, max_window: int) -> np.nd
     return out
 
 
-def _frames_dask(xyz, window: int, jump: float, max_window: int):
-    """:func:`_frames` on a dask array, lazily: chunks overlap by the reach of a pixel's windows.
+def _overlapping(xyz, kernel, halo: int, cell: int, quantities: int, dtype, **kwargs):
+    """Apply a kernel of frames (..., H, W, 3) -> (..., H, W, quantities) to a dask array, lazily.
 
-    A pixel's result depends on the pixels within the reach of its largest
-    windows (shifted by half a window, on cells of ``2**(levels - 1)`` pixels,
-    and the edge test one pixel beyond them). Chunks of y and x get a halo that
-    deep, and chunk boundaries and halos fall on multiples of the largest cell,
-    so that every chunk pools the pixels into the same cells as the whole frame;
-    the image border gets none (``boundary="none"``), so every chunk sees
-    exactly what the whole frame would, and the result equals :func:`_frames`
-    on the computed array up to rounding.
+    Chunks of y and x get a halo of ``halo`` pixels (the reach of a pixel's
+    result) and chunk boundaries fall on multiples of ``cell`` pixels; the
+    image border gets none (``boundary="none"``), so every chunk sees exactly
+    what the whole frame would.
     """
     import dask.array as da
 
-    cell = 2 ** (_levels(window, max_window) - 1)
-    halo = cell * (2 * (window // 2) + 2) + 2
-    halo += -halo % cell
     # one frame per chunk along the looped dimensions (views): frames are independent, so threads share them
     chunks = {**dict.fromkeys(range(xyz.ndim - 3), 1), xyz.ndim - 1: -1}
     depth = dict.fromkeys(range(xyz.ndim), 0)
@@ -476,15 +510,30 @@ def _frames_dask(xyz, window: int, jump: float, max_window: int):
             chunks[axis] = -1
     padded = da.overlap.overlap(xyz.rechunk(chunks), depth=depth, boundary="none")
     out = padded.map_blocks(
-        _frames,
-        window=window,
-        jump=jump,
-        max_window=max_window,
-        chunks=(*padded.chunks[:-1], (2,)),
-        dtype=np.float32,
-        meta=np.empty((0,) * xyz.ndim, dtype=np.float32),
+        kernel,
+        **kwargs,
+        chunks=(*padded.chunks[:-1], (quantities,)),
+        dtype=dtype,
+        meta=np.empty((0,) * xyz.ndim, dtype=dtype),
     )
     return da.overlap.trim_internal(out, depth, boundary="none")
+
+
+def _frames_dask(xyz, window: int, jump: float, max_window: int):
+    """:func:`_frames` on a dask array, lazily: chunks overlap by the reach of a pixel's windows.
+
+    A pixel's result depends on the pixels within the reach of its largest
+    windows (shifted by half a window, on cells of ``2**(levels - 1)`` pixels,
+    and the edge test one pixel beyond them). Chunks of y and x get a halo that
+    deep, and chunk boundaries and halos fall on multiples of the largest cell,
+    so that every chunk pools the pixels into the same cells as the whole frame
+    (:func:`_overlapping`), and the result equals :func:`_frames` on the
+    computed array up to rounding.
+    """
+    cell = 2 ** (_levels(window, max_window) - 1)
+    halo = cell * (2 * (window // 2) + 2) + 2
+    halo += -halo % cell
+    return _overlapping(xyz, _frames, halo, cell, 2, np.float32, window=window, jump=jump, max_window=max_window)
 
 
 def _dispatch(xyz, window: int, jump: float, max_window: int):
@@ -492,6 +541,51 @@ def _dispatch(xyz, window: int, jump: float, max_window: int):
     if isinstance(xyz, np.ndarray):
         return _frames(xyz, window, jump, max_window)
     return _frames_dask(xyz, window, jump, max_window)
+
+
+def _mixed_frames(xyz: np.ndarray, jump: float) -> np.ndarray:
+    """Mixed-pixel masks (..., H, W, 1) bool of a stack of frames (..., H, W, 3)."""
+    out = np.empty((*xyz.shape[:-1], 1), dtype=bool)
+    for index in np.ndindex(xyz.shape[:-3]):
+        out[index + (Ellipsis, 0)] = _mixed(*_points(xyz[index]), jump)
+    return out
+
+
+def _mixed_dispatch(xyz, jump: float):
+    """:func:`_mixed_frames`, on a dask array lazily: a pixel's test reads the pixels up to 2 away."""
+    if isinstance(xyz, np.ndarray):
+        return _mixed_frames(xyz, jump)
+    return _overlapping(xyz, _mixed_frames, 2, 1, 1, bool, jump=jump)
+
+
+def _cloud(xyz: xr.DataArray) -> xr.DataArray:
+    """Check an organized cloud (view, y, x, axis) and order its axis x, y, z (:func:`angle_of_incidence`)."""
+    if not isinstance(xyz, xr.DataArray):
+        raise TypeError(f"xyz must be an xarray.DataArray (view, y, x, axis), got {type(xyz).__name__}")
+    missing = [dim for dim in ("y", "x", "axis") if dim not in xyz.dims]
+    if missing:
+        raise ValueError(f"xyz must have dims (view, y, x, axis); missing {missing} in {xyz.dims}")
+    if "axis" in xyz.coords:
+        labels = [str(label) for label in xyz["axis"].values]
+        if sorted(labels) != ["x", "y", "z"]:
+            raise ValueError(f"xyz axis coordinate must hold 'x', 'y', 'z', got {labels}")
+        return xyz.sel(axis=["x", "y", "z"])
+    if xyz.sizes["axis"] != 3:
+        raise ValueError(f"xyz axis dimension must have size 3 (x, y, z), got {xyz.sizes['axis']}")
+    return xyz
+
+
+def _per_frame(function, xyz: xr.DataArray, **kwargs) -> xr.DataArray:
+    """Apply ``function`` (frames (..., H, W, 3) -> (..., H, W, quantity)) over the y, x, axis dimensions of ``xyz``."""
+    return xr.apply_ufunc(
+        function,
+        xyz,
+        input_core_dims=[["y", "x", "axis"]],
+        output_core_dims=[["y", "x", "quantity"]],
+        kwargs=kwargs,
+        dask="allowed",
+        keep_attrs=False,
+    ).drop_vars("axis", errors="ignore")
 
 
 def angle_of_incidence(
@@ -539,33 +633,66 @@ def angle_of_incidence(
         If ``window`` is not an odd integer >= 3, ``max_window`` is smaller, ``jump`` is not positive, or
         ``xyz`` lacks a ``y``, ``x`` or ``axis`` (of size 3) dimension.
     """
-    if not isinstance(xyz, xr.DataArray):
-        raise TypeError(f"xyz must be an xarray.DataArray (view, y, x, axis), got {type(xyz).__name__}")
+    xyz = _cloud(xyz)
     window = _check_window(window)
     jump = _check_jump(jump)
     max_window = _check_max_window(max_window, window)
-    missing = [dim for dim in ("y", "x", "axis") if dim not in xyz.dims]
-    if missing:
-        raise ValueError(f"xyz must have dims (view, y, x, axis); missing {missing} in {xyz.dims}")
-    if "axis" in xyz.coords:
-        labels = [str(label) for label in xyz["axis"].values]
-        if sorted(labels) != ["x", "y", "z"]:
-            raise ValueError(f"xyz axis coordinate must hold 'x', 'y', 'z', got {labels}")
-        xyz = xyz.sel(axis=["x", "y", "z"])
-    elif xyz.sizes["axis"] != 3:
-        raise ValueError(f"xyz axis dimension must have size 3 (x, y, z), got {xyz.sizes['axis']}")
     params = {"window": window, "jump": jump, "max_window": max_window}
-    out = xr.apply_ufunc(
-        _dispatch,
-        xyz,
-        input_core_dims=[["y", "x", "axis"]],
-        output_core_dims=[["y", "x", "quantity"]],
-        kwargs=params,
-        dask="allowed",
-        keep_attrs=False,
-    ).drop_vars("axis", errors="ignore")
+    out = _per_frame(_dispatch, xyz, **params)
     aoi = out.isel(quantity=0, drop=True)
     distance = out.isel(quantity=1, drop=True)
     aoi.attrs = {"units": "rad", "long_name": "angle of incidence", **params}
     distance.attrs = {"units": "m", "long_name": "distance from the camera centre"}
     return xr.Dataset({"aoi": aoi, "distance": distance}, attrs=params)
+
+
+def mixed_pixels(xyz: xr.DataArray, *, jump: float = DEFAULT_JUMP) -> xr.DataArray:
+    """Find the mixed ("flying") pixels of organized point clouds.
+
+    A time-of-flight pixel whose footprint straddles a depth edge returns a
+    depth between the two surfaces, on neither. Along a row, column or
+    diagonal, a pixel is mixed when
+
+    - its steps to both neighbours are depth jumps in the same sense (it lies
+      between them): steeper than 80 deg (:data:`MAX_SLOPE_DEG`) beyond a
+      relative depth step of ``jump / 2`` each, as the pixel splits one jump
+      in two (the edge test of :func:`angle_of_incidence` with half the jump);
+    - and each neighbour's next step, away from the pixel, is not steeper
+      than 80 deg in that sense: the neighbours lie on surfaces of their own.
+
+    It is the veil-point test of laser scanners (the line to a neighbour
+    nearly along the ray) asked on both sides, and checked against each
+    side's surface: a true edge pixel has a gentle step on its own side, a
+    continuous surface seen at a grazing angle steep steps throughout, and
+    neither is mixed. Steps are judged as angles and relative depths, so no
+    focal length or distance enters. A split is found when its smaller part
+    exceeds ``jump / 2`` plus the rise of an 80 deg slope over the ray spacing
+    (~1.5 % of the depth at 565 px focal length: 7.5 mm at 0.5 m); an invalid
+    neighbour leaves a direction undecided, and a band of two mixed pixels
+    across an edge is not found.
+
+    Parameters
+    ----------
+    xyz : (view, y, x, axis) DataArray, metres
+        Organized clouds, as in :func:`angle_of_incidence`.
+    jump : float, optional
+        Relative depth step, beyond what an 80 deg slope gives, that separates
+        two surfaces, as in :func:`angle_of_incidence`.
+
+    Returns
+    -------
+    (view, y, x) DataArray of bool
+        ``mixed``: True at mixed pixels (never at invalid ones); attr ``jump``.
+        Lazy when ``xyz`` is dask-backed.
+
+    Raises
+    ------
+    TypeError, ValueError
+        As :func:`angle_of_incidence`, for ``xyz`` and ``jump``.
+    """
+    xyz = _cloud(xyz)
+    jump = _check_jump(jump)
+    out = _per_frame(_mixed_dispatch, xyz, jump=jump).isel(quantity=0, drop=True)
+    out.name = "mixed"
+    out.attrs = {"long_name": "mixed (flying) pixel", "jump": jump}
+    return out

@@ -28,7 +28,13 @@ from surffin.method.features import (
     variability,
     views_by_incidence,
 )
-from surffin.method.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW, DEFAULT_WINDOW, angle_of_incidence
+from surffin.method.geometry import (
+    DEFAULT_JUMP,
+    DEFAULT_MAX_WINDOW,
+    DEFAULT_WINDOW,
+    angle_of_incidence,
+    mixed_pixels,
+)
 from surffin.method.noise import relative_noise
 from surffin.method.registration import register, registration_maps, warp
 from surffin.method.roughness import roughness_map
@@ -65,9 +71,18 @@ def aoi_stage(
     jump: float = DEFAULT_JUMP,
     max_window: int = DEFAULT_MAX_WINDOW,
 ) -> xr.Dataset:
-    """Angle of incidence and distance of every view (method step 2)."""
-    ds = angle_of_incidence(ingest["xyz"], window=window, jump=jump, max_window=max_window)
-    ds.attrs = {**ds.attrs, **_item_attrs(ingest)}
+    """Angle of incidence and distance of every view (method step 2), without its mixed pixels.
+
+    The mixed ("flying") pixels, between two surfaces at a depth edge
+    (:func:`surffin.method.geometry.mixed_pixels`, with the same ``jump``),
+    are dropped before the plane fits: they get no AOI and no distance, hence
+    no reflectance. The attr ``mixed_pixels`` counts them per view.
+    """
+    xyz = ingest["xyz"]
+    mixed = mixed_pixels(xyz, jump=jump).compute()
+    ds = angle_of_incidence(xyz.where(~mixed), window=window, jump=jump, max_window=max_window)
+    counts = dict(zip(mixed["view"].values.tolist(), mixed.sum(("y", "x")).values.tolist()))
+    ds.attrs = {**ds.attrs, **_item_attrs(ingest), "mixed_pixels": counts}
     return ds
 
 
