@@ -78,7 +78,7 @@ def run_chain(
             step.function,
             stores[step.output],
             stores={key: stores[key] for key in step.inputs},
-            params={key: params[key] for key in step.keywords},
+            params={key: params[key] for key in step.keywords if key in params},
             chunks=chunks,
             scheduler=scheduler,
             threads=threads,

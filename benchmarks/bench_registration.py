@@ -1,27 +1,26 @@
 """Accuracy and speed of co-registration (surffin.method.registration) on a synthetic paper campaign.
 
-Run by hand: ``python benchmarks/bench_registration.py [--campaign DIR] [--truth DIR]``. Without ``--campaign`` it
-renders the ``paper`` preset (seed 0) into a temporary folder. The error of a map is measured against the
-simulator's truth (``<campaign>-truth/<item>.zarr``, ``u_ref``/``v_ref``) with
-:func:`surffin.method.registration.registration_error`: for each reference pixel, the distance in the reference
-image between the pixel and the true position of the point its map sends it to.
+Run by hand: ``python benchmarks/bench_registration.py [--campaign DIR] [--truth DIR] [--tables 1 .. 6]``. Without
+``--campaign`` it renders the ``paper`` preset (seed 0) into a temporary folder. A map's error is measured against
+the simulator's truth (``<campaign>-truth/<item>.zarr``) with :func:`surffin.method.registration.registration_error`:
+per reference pixel, the distance in the reference image between it and the true position of the point its map
+sends it to.
 
 Table 1, per item and method: median error (pixels) per non-reference view over all mapped pixels, and over the
 specimen top faces (truth ``label`` >= 0: the surface that is classified), the mapped share of the reference grid,
 and the time of :func:`registration_maps`. Methods: ``poses`` (default: the reference range averaged over 9 x 9
 pixels of one surface), ``poses raw`` (``smooth=1``: the error the 0.9 mm depth noise of the reference point
-induces), ``homography`` (SIFT, the whole image) and, for specimens, ``homography roi`` (reference keypoints on the
-campaign's specimen roi only).
-
-Table 2, the keypoint detectors of the homography method on every item: keypoints per view, matches after the ratio
-test and homography inliers (means over non-reference views), inlier reprojection rms, median error (all mapped
-pixels / specimen tops) and time per item. Detectors the installed OpenCV lacks are listed as such (OpenCV 5 moved
-AKAZE to opencv-contrib; to measure it, put opencv-contrib-python-headless first on PYTHONPATH).
-
-Table 3, runtime per item: maps by each method and :func:`register` of two (view, y, x) float32 images (stand-ins
-for reflectance and AOI). Table 4, the poses method's ``smooth`` window (the default is chosen on it): median and
-99th percentile of the error over all items and non-reference views. A wider window averages more depth noise away
-(the median falls) but bends the range near depth steps (the tail grows).
+induces), ``homography`` (SIFT, the whole image) and, for specimens, ``homography roi`` (keypoints on the roi).
+Table 2, the keypoint detectors of the homography method on every item: keypoints, matches and inliers per view,
+inlier rms, median error and time per item (OpenCV 5 moved AKAZE to opencv-contrib: listed as missing unless
+opencv-contrib-python-headless comes first on PYTHONPATH).
+Table 3, runtime per item: the maps by each method (poses with and without the pose refinement, and its cost per
+non-reference view) and :func:`register` of two images. Table 4, the poses method's ``smooth`` window (the default
+is chosen on it): median and 99th percentile of the error; a wider window averages more depth noise away (the median
+falls) but bends the range near depth steps (the tail grows).
+Tables 5 and 6, the pose refinement against a robot's pose errors (0.2-0.5 deg and 1-2 mm per non-reference view,
+``--seed``): the map errors on the specimen tops and the corrections (Table 5), and the features against the truth
+from the whole item chain (Table 6), with the true, the perturbed and the refined poses.
 """
 
 from __future__ import annotations
@@ -33,11 +32,18 @@ from pathlib import Path
 
 import numpy as np
 import xarray as xr
+from bench_chunks import CONFIG, chain_parameters, quiet_logs  # benchmarks/ is on sys.path when run as a script
+from bench_item import interior
+from scipy.spatial.transform import Rotation
 
 from surffin.errors import RegistrationError
 from surffin.io.campaign import read_campaign
 from surffin.io.ingest import ingest_item
+from surffin.io.store import open_store
 from surffin.method.registration import DETECTORS, register, registration_error, registration_maps
+from surffin.method.stages import process_item
+from surffin.pipeline import parameters
+from surffin.pipeline.run import run_calibration
 from surffin.simulate import simulate_campaign
 
 ALL_DETECTORS = ("sift", "orb", "akaze")
@@ -51,6 +57,31 @@ def load(campaign: Path, truth: Path):
         reference = xr.open_zarr(truth / f"{name}.zarr")[["u_ref", "v_ref", "label"]].load()
         roi = {"y": list(item.roi.y), "x": list(item.roi.x)} if item.roi is not None else None
         yield name, ingest, reference, roi
+
+
+def robot_poses(ingest: xr.Dataset, rng: np.random.Generator) -> tuple[xr.Dataset, list[np.ndarray]]:
+    """Return a copy of the cube whose non-reference views carry poses with a robot's errors, and the errors.
+
+    Each error is a camera-frame transform (the recorded pose is the true one times it): 0.2-0.5 deg about a random
+    axis, 1-2 mm along a random direction; the reference view's is the identity.
+    """
+    robot = ingest.copy(deep=True)
+    errors = []
+    for index, view in enumerate(robot["view"].values):
+        error = np.eye(4)
+        if view != ingest.attrs["reference_view"]:
+            axis, direction = (vector / np.linalg.norm(vector) for vector in rng.normal(size=(2, 3)))
+            error[:3, :3] = Rotation.from_rotvec(np.deg2rad(rng.uniform(0.2, 0.5)) * axis).as_matrix()
+            error[:3, 3] = rng.uniform(0.001, 0.002) * direction
+        robot["pose"].values[index] = robot["pose"].values[index] @ error
+        errors.append(error)
+    return robot, errors
+
+
+def size(transform: np.ndarray) -> str:
+    """Format a rigid transform's translation (mm) and rotation angle (deg)."""
+    angle = np.rad2deg(Rotation.from_matrix(transform[:3, :3]).magnitude())
+    return f"{1e3 * np.linalg.norm(transform[:3, 3]):.2f} mm {angle:.3f} deg"
 
 
 def timed_maps(ingest, **kwargs):
@@ -157,22 +188,28 @@ def detector_table(items) -> None:
 
 def runtime_table(items, repeat: int) -> None:
     """Print Table 3: per item, the best of ``repeat`` times of the maps by each method and of :func:`register`."""
-    print(f"\nTable 3: runtime per item (best of {repeat}), seconds")
-    print(f"{'item':5} {'views':>5} {'grid':>9} {'maps poses':>10} {'maps homography':>15} {'register':>9}")
+    print(f"\nTable 3: runtime per item (best of {repeat}), seconds; refinement: its cost per non-reference view")
+    print(
+        f"{'item':5} {'views':>5} {'grid':>9} {'maps poses':>10} {'unrefined':>9} {'refinement':>10} "
+        f"{'maps homography':>15} {'register':>9}"
+    )
+    runs = {"poses": {"method": "poses"}, "unrefined": {"method": "poses", "refine": False}}
+    runs["homography"] = {"method": "homography"}
     for name, ingest, _, _ in items:
         best = {}
         for _ in range(repeat):
-            for method in ("poses", "homography"):
-                maps, seconds = timed_maps(ingest, method=method)
-                best[method] = min(best.get(method, np.inf), seconds)
+            for label, kwargs in runs.items():
+                maps, seconds = timed_maps(ingest, **kwargs)
+                best[label] = min(best.get(label, np.inf), seconds)
             ds = xr.Dataset({"reflectance": ingest["intensity"], "aoi": ingest["xyz"].sel(axis="z")})
             start = time.perf_counter()
             register(ds, maps)
             best["register"] = min(best.get("register", np.inf), time.perf_counter() - start)
         grid = f"{ingest.sizes['y']}x{ingest.sizes['x']}"
+        per_view = (best["poses"] - best["unrefined"]) / (ingest.sizes["view"] - 1)
         print(
-            f"{name:5} {ingest.sizes['view']:5} {grid:>9} {best['poses']:10.2f} {best['homography']:15.2f} "
-            f"{best['register']:9.3f}"
+            f"{name:5} {ingest.sizes['view']:5} {grid:>9} {best['poses']:10.2f} {best['unrefined']:9.2f} "
+            f"{per_view:10.3f} {best['homography']:15.2f} {best['register']:9.3f}"
         )
 
 
@@ -191,12 +228,90 @@ def smoothing_table(items, windows=(1, 3, 5, 7, 9, 11, 15)) -> None:
         print(f"{window:6d} {np.median(error):9.3f} {np.percentile(error, 99):7.2f} {seconds / len(items):7.2f}")
 
 
+def refinement_table(items, seed: int) -> dict:
+    """Print Table 5: map errors with true, robot-recorded and refined poses; return the perturbed cubes by item.
+
+    Per item and non-reference view: the median error on the specimen tops with the true poses, the recorded
+    (perturbed, :func:`robot_poses`) ones, those refined and (in parentheses) the true poses refined; the recorded
+    pose's error, the correction the refinement found, and the pose error it leaves (both in the view's frame).
+    """
+    print("\nTable 5: pose refinement against a robot's pose errors; median error on the specimen tops (pixels)")
+    print(
+        f"{'item':5} {'view':5} {'true':>6} {'recorded':>9} {'refined':>8} {'(true refined)':>14} "
+        f"{'error of the recorded pose':>27} {'correction':>22} {'error left':>22}"
+    )
+    rng = np.random.default_rng(seed)
+    robots, pooled = {}, {}
+    for name, ingest, truth, _ in items:
+        robot, pose_errors = robot_poses(ingest, rng)
+        robots[name] = robot
+        runs = {
+            "true": (ingest, False),
+            "recorded": (robot, False),
+            "refined": (robot, True),
+            "true refined": (ingest, True),
+        }
+        maps = {label: registration_maps(cube, method="poses", refine=refine) for label, (cube, refine) in runs.items()}
+        tops = {label: errors(one, truth)[1] for label, one in maps.items()}
+        views = list(maps["refined"]["view"].values)[1:]
+        for index, view in enumerate(views, start=1):
+            correction = np.array(maps["refined"].attrs["diagnostics"][view]["correction"])
+            cells = " ".join(
+                f"{tops[label][index - 1]:{width}.3f}"
+                for label, width in (("true", 6), ("recorded", 9), ("refined", 8), ("true refined", 14))
+            )
+            print(
+                f"{name:5} {view:5} {cells} {size(pose_errors[index]):>27} {size(correction):>22} "
+                f"{size(pose_errors[index] @ correction):>22}"
+            )
+            for label in tops:
+                pooled.setdefault(label, []).append(tops[label][index - 1])
+    print("mean of the medians: " + ", ".join(f"{label} {np.mean(values):.3f}" for label, values in pooled.items()))
+    return robots
+
+
+def features_table(campaign: Path, truth: Path, items, robots: dict) -> None:
+    """Print Table 6: the features against the truth from the item chain with true, perturbed and refined poses.
+
+    As ``bench_item.py``: the median relative error of R0 and n on the specimen interiors (the scene's labelled
+    pixels), :func:`~surffin.method.stages.process_item` with the configuration's parameters and the calibration
+    fitted once, for the true and the perturbed poses (``robots``), each unrefined and refined.
+    """
+    quiet_logs()
+    camp = read_campaign(campaign)
+    with tempfile.TemporaryDirectory() as scratch:
+        store = run_calibration(
+            camp.path, Path(scratch, "calibration.zarr"), params=parameters.calibration_parameters(CONFIG)
+        )
+        calibration = open_store(store).compute()
+        print("\nTable 6: features vs truth, median relative error (%) of R0 / n on the specimen interiors")
+        runs = {"true": (False, False), "true refined": (False, True), "perturbed": (True, False)}
+        runs["perturbed refined"] = (True, True)
+        print(f"{'item':5} " + " ".join(f"{label:>18}" for label in runs))
+        for name, ingest, _, _ in items:
+            params = chain_parameters(CONFIG, camp.items[name])
+            cells = []
+            for perturbed, refine in runs.values():
+                cube = robots[name] if perturbed else ingest
+                features = process_item(cube, calibration, **params, refine=refine)["features"]
+                reference = xr.open_zarr(truth / f"{name}.zarr").sel(y=features.y, x=features.x).compute()
+                mask = interior(reference, camp.items[name])
+                rel = {
+                    key: float(np.abs((features[key] - reference[key]) / reference[key]).where(mask).median())
+                    for key in ("R0", "n")
+                }
+                cells.append(f"{100 * rel['R0']:8.2f} / {100 * rel['n']:6.2f}")
+            print(f"{name:5} " + " ".join(f"{cell:>18}" for cell in cells))
+
+
 def main() -> None:
-    """Parse the command line, render a campaign unless one is given, and print the four tables."""
+    """Parse the command line, render a campaign unless one is given, and print the tables asked for."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--campaign", type=Path, help="a rendered paper campaign (default: render one)")
     parser.add_argument("--truth", type=Path, help="its truth folder (default: <campaign>-truth)")
     parser.add_argument("--repeat", type=int, default=3, help="timing repeats of table 3")
+    parser.add_argument("--seed", type=int, default=0, help="of the robot's pose errors (tables 5 and 6)")
+    parser.add_argument("--tables", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6], help="the tables to print")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as scratch:
         campaign = args.campaign
@@ -205,10 +320,18 @@ def main() -> None:
             simulate_campaign(campaign, preset="paper", seed=0)
         truth = args.truth or campaign.resolve().with_name(campaign.resolve().name + "-truth")
         items = list(load(campaign, truth))
-        accuracy_table(items)
-        detector_table(items)
-        runtime_table(items, args.repeat)
-        smoothing_table(items)
+        tables = {
+            1: lambda: accuracy_table(items),
+            2: lambda: detector_table(items),
+            3: lambda: runtime_table(items, args.repeat),
+            4: lambda: smoothing_table(items),
+        }
+        for number in sorted(set(args.tables) & set(tables)):
+            tables[number]()
+        if {5, 6} & set(args.tables):
+            robots = refinement_table(items, args.seed)
+            if 6 in args.tables:
+                features_table(campaign, truth, items, robots)
 
 
 if __name__ == "__main__":

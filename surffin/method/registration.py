@@ -1,28 +1,23 @@
 """Co-registration: every view of an item on the reference view's pixel grid (METHOD.md step 4).
 
-The mapping and the resampling are separate steps. :func:`registration_maps` finds, for
-every pixel of the reference grid (the item's cropped sensor grid), the sub-pixel sensor
-position ``(map_x, map_y)`` in each view where the same surface point is seen:
+:func:`registration_maps` finds, for every pixel of the reference grid (the item's cropped
+sensor grid), the sub-pixel sensor position ``(map_x, map_y)`` in each view where the same
+surface point is seen; :func:`warp` resamples any (view, y, x) image there (NaN-aware
+bilinear), :func:`register` warps an item's reflectance and AOI, and :func:`registration_error`
+scores maps against the synthetic camera's truth. The methods:
 
-- ``"poses"``: the reference pixel's measured 3-D point goes to the world frame
-  with the reference pose, into the other camera's frame with the inverse of its
-  pose, and through the pinhole intrinsics onto its sensor. A point that view
-  sees something closer than (beyond a tolerance) is occluded. Works for any
-  surface shape. The point's depth noise moves it along the reference ray, i.e.
-  along the epipolar line of the other view; the range is therefore first
-  averaged over a small window of neighbours on the same surface.
-- ``"homography"``: SIFT keypoints (by default) on locally contrast-normalised
-  log intensity, matched with Lowe's ratio test, and a robust homography (USAC
-  MAGSAC++); exact for one plane only, as in the paper. On a specimen raised
-  from its board the homography follows the plane with most keypoints (usually
-  the board) and the other is off by the parallax; an ``roi`` option restricts
-  the reference keypoints to the plane wanted.
-- ``"auto"``: poses when every view has one and the camera has intrinsics,
-  else the homography.
-
-:func:`warp` resamples any (view, y, x) image at the maps by NaN-aware bilinear
-interpolation; :func:`register` warps an item's reflectance and AOI.
-:func:`registration_error` scores maps against the synthetic camera's truth.
+- ``"poses"``: the reference pixel's 3-D point (its range averaged over neighbours on the same
+  surface: depth noise moves it along the view's epipolar line) goes through the two poses and
+  the pinhole intrinsics onto the view's sensor; a point the view sees something closer than
+  is occluded. Any surface shape. A robot's recorded poses are off by ~1-2 mm and 0.2-0.5 deg,
+  several pixels on the sensor, so each view's pose is first refined against the reference
+  view (:func:`_refine_pose`: point-to-plane ICP, and direct alignment of the surface texture
+  for the motions a plane leaves free), bounded, and its correction reported.
+- ``"homography"``: SIFT keypoints on locally contrast-normalised log intensity, Lowe's ratio
+  test and a robust homography (USAC MAGSAC++); exact for one plane only, as in the paper: on
+  a specimen raised from its board it follows the plane with most keypoints unless an ``roi``
+  restricts the reference keypoints to the plane wanted.
+- ``"auto"``: poses when every view has one and the camera has intrinsics, else the homography.
 """
 
 from __future__ import annotations
@@ -34,6 +29,7 @@ import numpy as np
 import xarray as xr
 
 from surffin.errors import RegistrationError
+from surffin.method.geometry import plane_normals
 
 __all__ = [
     "METHODS",
@@ -80,8 +76,27 @@ POSE_OPTIONS = {
     "tolerance": 0.005,  # metres: ranges closer than max(tolerance, relative * range) are one surface
     "relative": 0.01,
     "smooth": 9,  # odd window (pixels) averaging the reference range over one surface; 1 = off
+    "refine": True,  # refine each view's pose against the reference view's before mapping
+    "max_translation": 0.01,  # metres: a larger correction of a pose is refused
+    "max_rotation": 2.0,  # degrees: a larger correction of a pose is refused
 }
 
+# Pose refinement (POSE_OPTIONS["refine"]), chosen on benchmarks/bench_registration.py.
+_REFINE_SAMPLES = 20000  # about this many pixels (a regular subsample) of each grid give residuals
+_REFINE_WINDOW = 15  # pixels: plane-fit window of the reference normals
+_REFINE_CONTRAST = 4.0  # pixels: local normalisation of the texture (wider windows reach across edges: biased)
+_REFINE_LEVELS = (2.0, 1.0)  # pixels: Gaussian blur of the texture, coarse to fine
+_REFINE_ITERATIONS = 10  # Gauss-Newton iterations per level at most
+_REFINE_STEP = 0.01  # pixels: converged when a step of the last level moves the surface by less in the view
+_COARSE = 10.0  # coarser levels stop at this many times the step
+_OBSERVABLE = 3e-3  # point-to-plane information below this share of the largest is dropped (unobservable)
+_CONSTRAINED = 10.0  # directions with less information than this times the prior's are not updated
+_PRIOR = (0.4, 0.002)  # standard deviation of a recorded pose (robot and hand-eye): degrees, metres
+_MIN_PAIRS = 50  # fewer point-to-plane pairs: the view is refused
+_MIN_TEXTURE = 300  # fewer texture pairs: that term is left out
+_HUBER = 1.345  # Huber threshold, robust standard deviations
+_MAD_SCALE = 1.4826  # median absolute deviation to standard deviation (normal distribution)
+_REMAP_ROW = 1024  # positions per row of the maps given to cv2.remap
 _FEATURE_MARGIN = 4  # pixels: no keypoint this close to an invalid pixel or the border
 _CLIP = 3.0  # local standard deviations mapped to the ends of the 8-bit range
 _RIGID_TOLERANCE = 1e-4  # |R^T R - I| of a pose (poses written with ~5 digits pass; 1e-4 rad ~ 0.05 mm at 0.5 m)
@@ -215,12 +230,20 @@ def _project(points: np.ndarray, transform: np.ndarray, intrinsics: Mapping[str,
         Range of each point from camera B's centre.
     """
     local = points @ transform[:3, :3].T + transform[:3, 3]
+    return *_pinhole(local, intrinsics), np.linalg.norm(local, axis=-1)
+
+
+def _pinhole(local: np.ndarray, intrinsics: Mapping[str, float], origin=(0, 0)) -> tuple[np.ndarray, np.ndarray]:
+    """Column and row of camera-frame points (..., 3) through the pinhole; NaN at or behind the camera or for NaN.
+
+    Positions on a grid whose first pixel is the sensor's ``origin`` (row, col); (0, 0): sensor positions.
+    """
     depth = local[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         front = depth > 0
-        col = np.where(front, intrinsics["fx"] * local[..., 0] / depth + intrinsics["cx"], np.nan)
-        row = np.where(front, intrinsics["fy"] * local[..., 1] / depth + intrinsics["cy"], np.nan)
-    return col, row, np.linalg.norm(local, axis=-1)
+        col = np.where(front, intrinsics["fx"] * local[..., 0] / depth + (intrinsics["cx"] - origin[1]), np.nan)
+        row = np.where(front, intrinsics["fy"] * local[..., 1] / depth + (intrinsics["cy"] - origin[0]), np.nan)
+    return col, row
 
 
 def _nearest(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
@@ -276,14 +299,343 @@ def _pose_map(points, transform, intrinsics, view_points, columns, rows, toleran
     return col, row, diagnostics
 
 
-def _feature_image(intensity: np.ndarray, valid: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
-    """Make an 8-bit image of the surface texture and the mask where keypoints may lie.
+def _rigid(twist: np.ndarray) -> np.ndarray:
+    """Return the rigid transform (4, 4) of a twist (6,): rotation vector (radians), then translation."""
+    out = np.eye(4)
+    out[:3, :3] = cv2.Rodrigues(np.asarray(twist[:3], dtype=np.float64))[0]
+    out[:3, 3] = twist[3:]
+    return out
 
-    Distance, angle and instrument act on the intensity as smooth factors, so the
-    log intensity minus its local mean, divided by its local standard deviation
-    (Gaussian windows of ``sigma`` pixels, normalised over valid pixels), leaves
-    the texture at the same contrast everywhere, also on weakly textured
-    surfaces beside strong edges; +-3 local standard deviations span 0..255.
+
+def _twist(transform: np.ndarray) -> np.ndarray:
+    """Return the twist (6,) of a rigid transform (4, 4): inverse of :func:`_rigid`."""
+    return np.concatenate([cv2.Rodrigues(transform[:3, :3])[0].ravel(), transform[:3, 3]])
+
+
+def _point_to_plane(transform, source, target, normals, intrinsics, grid, tolerance, relative):
+    """Point-to-plane residuals and Jacobian of a view's points against the reference surface.
+
+    Projective data association: each source point, moved into the reference
+    camera's frame, is paired with the reference pixel it projects to (nearest).
+
+    Parameters
+    ----------
+    transform : (4, 4) ndarray
+        The view's camera frame to the reference camera's (current estimate).
+    source : (N, 3) ndarray, metres
+        The view's points, its camera frame.
+    target, normals : (h, w, 3) ndarray
+        Reference points (metres) and unit normals on the reference grid; NaN
+        where undefined (invalid, depth edges).
+    intrinsics : mapping
+        Pinhole ``fx``, ``fy``, ``cx``, ``cy``.
+    grid : (columns, rows)
+        Sensor indices of the reference grid.
+    tolerance, relative : float
+        Pairs farther apart along the normal than ``max(tolerance, relative *
+        range)`` are rejected (different surfaces, e.g. across a depth step).
+
+    Returns
+    -------
+    jacobian : (M, 6) ndarray
+        Of the residuals with respect to a twist applied to the view's points in
+        its own frame (rotation vector, translation).
+    residual : (M,) ndarray, metres
+        Signed distance of each kept pair along the reference normal.
+    """
+    # np.dot and np.take: ~10x faster than matmul and fancy indexing on (N, 3) arrays
+    moved = np.dot(source, transform[:3, :3].T) + transform[:3, 3]
+    col, row = (np.rint(value) for value in _pinhole(moved, intrinsics, (grid[1][0], grid[0][0])))
+    height, width = target.shape[:2]
+    with np.errstate(invalid="ignore"):
+        found = np.flatnonzero((col >= 0) & (col < width) & (row >= 0) & (row < height))
+    at = row[found].astype(np.intp) * width + col[found].astype(np.intp)
+    moved = np.take(moved, found, axis=0)
+    normal = np.take(normals.reshape(-1, 3), at, axis=0)
+    residual = np.einsum("ij,ij->i", normal, moved - np.take(target.reshape(-1, 3), at, axis=0))
+    distance = np.sqrt(np.einsum("ij,ij->i", moved, moved))
+    with np.errstate(invalid="ignore"):
+        keep = np.abs(residual) <= np.maximum(tolerance, relative * distance)
+    local_normal = np.dot(normal[keep], transform[:3, :3])
+    return np.hstack([np.cross(np.take(source, found[keep], axis=0), local_normal), local_normal]), residual[keep]
+
+
+def _remap(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """Bilinear samples (N, C) of a float32 image (H, W, C <= 4) at array positions (N,) by OpenCV; NaN outside."""
+    # cv2.remap takes maps of fewer than 2**15 rows and columns: lay the positions out in rows
+    count = col.size
+    padded = -(-count // _REMAP_ROW) * _REMAP_ROW
+    maps = [
+        np.pad(value, (0, padded - count), constant_values=-1.0).astype(np.float32).reshape(-1, _REMAP_ROW)
+        for value in (col, row)
+    ]
+    nan = (np.nan,) * image.shape[-1]
+    out = cv2.remap(image, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=nan)
+    return out.reshape(padded, -1)[:count]
+
+
+def _texture_residuals(transform, points, texture, sampled, intrinsics, origin, tolerance, relative):
+    """Texture residuals and Jacobian of reference pixels against a view (direct image alignment).
+
+    Parameters
+    ----------
+    transform : (4, 4) ndarray
+        The reference camera frame to the view's (current estimate).
+    points : (N, 3) ndarray, metres
+        Reference points, reference camera frame.
+    texture : (N,) ndarray
+        The reference texture at those pixels; NaN = not used.
+    sampled : (H, W, 4) ndarray of float32
+        The view's texture, its column and row derivatives and its measured
+        range (metres), on its own grid (:func:`_sampled`); NaN = missing.
+    intrinsics : mapping
+        Pinhole ``fx``, ``fy``, ``cx``, ``cy``.
+    origin : (row, col)
+        Sensor position of the view grid's first pixel.
+    tolerance, relative : float
+        The view must measure the point's range within ``max(tolerance,
+        relative * range)`` (else it is occluded or off the surface).
+
+    Returns
+    -------
+    jacobian : (M, 6) ndarray
+        Of the residuals with respect to a twist applied to the view's points in
+        its own frame (as in :func:`_point_to_plane`).
+    residual : (M,) ndarray
+        The view's texture at the projected point minus the reference's.
+    """
+    local = np.dot(points, transform[:3, :3].T) + transform[:3, 3]
+    col, row = (np.nan_to_num(value, nan=-1.0) for value in _pinhole(local, intrinsics, origin))
+    value, d_col, d_row, measured = _remap(sampled, col, row).T
+    distance = np.sqrt(np.einsum("ij,ij->i", local, local))
+    with np.errstate(invalid="ignore"):
+        keep = np.abs(measured - distance) <= np.maximum(tolerance, relative * distance)
+    keep &= np.isfinite(value) & np.isfinite(d_col) & np.isfinite(d_row) & np.isfinite(texture)
+    local, d_col, d_row = local[keep], d_col[keep], d_row[keep]
+    # derivative of the texture at the projection with respect to the point (view frame; :func:`_pinhole`)
+    fx, fy, z = intrinsics["fx"], intrinsics["fy"], local[:, 2]
+    gradient = np.stack(
+        [fx * d_col / z, fy * d_row / z, -(fx * d_col * local[:, 0] + fy * d_row * local[:, 1]) / z**2], axis=-1
+    )
+    return np.hstack([np.cross(gradient, local), -gradient]), value[keep] - texture[keep]
+
+
+def _interior(distance: np.ndarray, tolerance: float, relative: float) -> np.ndarray:
+    """Distance (pixels, float32) of each pixel from the nearest invalid pixel or range jump.
+
+    A jump: two neighbours (along a row or column) whose ranges differ by more
+    than ``max(tolerance, relative * range)``; both count as edge pixels.
+    """
+    smooth = np.isfinite(distance)
+    gap = np.maximum(tolerance, relative * np.where(smooth, distance, 0.0))
+    with np.errstate(invalid="ignore"):
+        down = np.abs(distance[1:] - distance[:-1]) > np.minimum(gap[1:], gap[:-1])
+        across = np.abs(distance[:, 1:] - distance[:, :-1]) > np.minimum(gap[:, 1:], gap[:, :-1])
+    smooth[1:] &= ~down
+    smooth[:-1] &= ~down
+    smooth[:, 1:] &= ~across
+    smooth[:, :-1] &= ~across
+    return cv2.distanceTransform(smooth.astype(np.uint8), cv2.DIST_L2, 5)
+
+
+def _correlated(sigma: float, stride: int) -> float:
+    """Count the samples per independent one of white noise blurred by ``sigma``, sampled every ``stride`` pixels.
+
+    The blurred noise is correlated as ``exp(-d^2 / (4 sigma^2))`` at a distance
+    of ``d`` pixels: the count is its sum over the sample lattice.
+    """
+    reach = int(np.ceil(8.0 * sigma / stride))
+    offsets = stride * np.arange(-reach, reach + 1)
+    return float(np.sum(np.exp(-(offsets**2) / (4.0 * sigma**2))) ** 2)
+
+
+def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian blur (in the image's dtype) over the finite pixels; NaN where less than half the weight is finite."""
+    known = np.isfinite(image)
+    weight = cv2.GaussianBlur(known.astype(image.dtype), (0, 0), sigma)
+    total = cv2.GaussianBlur(np.where(known, image, 0.0), (0, 0), sigma)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(weight >= 0.5, total / weight, np.nan)
+
+
+def _sampled(texture: np.ndarray, distance: np.ndarray, sigma: float) -> np.ndarray:
+    """Stack what :func:`_texture_residuals` samples: texture blurred by ``sigma``, its derivatives, range (float32)."""
+    blurred = _blurred(texture, sigma)
+    d_row, d_col = np.gradient(blurred)
+    return np.ascontiguousarray(np.stack([blurred, d_col, d_row, distance], axis=-1), dtype=np.float32)
+
+
+def _robust_normal_equations(jacobian: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Huber-weighted normal matrix (6, 6) and gradient (6,), residuals scaled by their robust deviation."""
+    scale = max(_MAD_SCALE * float(np.median(np.abs(residual - np.median(residual)))), np.finfo(np.float32).eps)
+    size = np.abs(residual) / scale
+    weight = np.where(size <= _HUBER, 1.0, _HUBER / np.maximum(size, _HUBER)) / scale**2
+    weighted = jacobian * weight[:, None]
+    return weighted.T @ jacobian, weighted.T @ residual
+
+
+def _observable(matrix: np.ndarray, gradient: np.ndarray, units: np.ndarray):
+    """Restrict normal equations to the directions they constrain well.
+
+    In units where every twist component moves the surface alike (``units``:
+    metres per unit of each component), the eigenvectors of the normal matrix
+    whose eigenvalue is below :data:`_OBSERVABLE` times the largest are dropped
+    with their information and their part of the gradient.
+
+    Returns
+    -------
+    matrix : (6, 6) ndarray
+    gradient : (6,) ndarray
+    """
+    scaled = matrix / np.outer(units, units)
+    values, vectors = np.linalg.eigh(scaled)
+    kept = vectors[:, values >= _OBSERVABLE * values[-1]]
+    projector = kept @ kept.T
+    return projector @ scaled @ projector * np.outer(units, units), units * (projector @ (gradient / units))
+
+
+def _regularised_step(matrix, gradient, prior, correction):
+    """Gauss-Newton step with a Gaussian prior on the correction, in the directions the data constrain.
+
+    In units of the prior's standard deviations, the directions (eigenvectors
+    of the data's normal matrix) with less than :data:`_CONSTRAINED` times the
+    prior's information are left as they are.
+
+    Parameters
+    ----------
+    matrix, gradient : (6, 6), (6,) ndarray
+        The data's normal equations.
+    prior : (6,) ndarray
+        Inverse variances of the correction.
+    correction : (6,) ndarray
+        The correction so far (twist).
+
+    Returns
+    -------
+    step : (6,) ndarray
+    count : int
+        Directions updated.
+    """
+    spread = 1.0 / np.sqrt(prior)
+    values, vectors = np.linalg.eigh(matrix * np.outer(spread, spread))
+    kept = values >= _CONSTRAINED
+    whitened = vectors[:, kept].T @ (spread * (gradient + prior * correction))
+    return -spread * (vectors[:, kept] @ (whitened / (values[kept] + 1.0))), int(kept.sum())
+
+
+def _refine_pose(start, geometric, textured, correlation, prior, units, tolerance):
+    """Refine a view's pose against the reference view's: Gauss-Newton, regularised toward the recorded pose.
+
+    The unknown is a correction of the view's pose: a twist (rotation vector,
+    translation) applied to its points in its own frame (the refined pose is
+    the recorded one times it). Each iteration sums the normal equations of
+
+    - point-to-plane ICP (:func:`_point_to_plane`): the view's points against
+      the reference surface, paired by projective association. A plane fixes
+      only its distance and tilt; the steps and noise of a real surface pull
+      the other directions weakly but with a bias, so this term keeps only the
+      directions it constrains well (:func:`_observable`);
+    - direct alignment of the surface texture (:func:`_texture_residuals`),
+      which fixes the motions along the surface, at the blur levels of
+      :data:`_REFINE_LEVELS` (coarse to fine); its information is divided by
+      the number of residuals per independent one (blurred noise);
+
+    each Huber-weighted on its robust scale, and a Gaussian prior on the
+    correction (the recorded pose's uncertainty). Directions the data
+    constrain less than :data:`_CONSTRAINED` times as well as the prior are not
+    moved (:func:`_regularised_step`): on a surface without usable texture the
+    shift and rotation along it keep their recorded values.
+
+    Parameters
+    ----------
+    start : (4, 4) ndarray
+        The view's camera frame to the reference camera's, from the recorded poses.
+    geometric : callable
+        ``geometric(transform)`` -> (jacobian, residual) of :func:`_point_to_plane`.
+    textured : callable
+        ``textured(transform, level)`` -> (jacobian, residual) of :func:`_texture_residuals`
+        (``transform`` the view-to-reference one) at a level of :data:`_REFINE_LEVELS`.
+    correlation : sequence of float
+        Per level, the texture residuals per independent one (their noise is
+        blurred): the texture term's information is divided by it.
+    prior : (6,) ndarray
+        Inverse variances of the correction's twist (rotation, translation).
+    units : (6,) ndarray
+        Metres of surface motion per unit of each twist component.
+    tolerance : float, metres
+        Converged when a step of the last level moves the surface by less
+        (coarser levels: :data:`_COARSE` times more).
+
+    Returns
+    -------
+    transform : (4, 4) ndarray
+        The refined view-to-reference transform.
+    info : dict
+        ``iterations`` (in all), ``converged``, and of the last iteration
+        ``pairs`` and ``texture_pairs`` (residuals of each kind) and
+        ``constrained`` (directions updated).
+    """
+    transform, info, converged = start, {"iterations": 0}, False
+    for level in range(len(_REFINE_LEVELS)):
+        last = level == len(_REFINE_LEVELS) - 1
+        for _ in range(_REFINE_ITERATIONS):
+            (shape_jacobian, shape_residual), (texture_jacobian, texture_residual) = (
+                geometric(transform),
+                textured(transform, level),
+            )
+            info = {**info, "pairs": shape_residual.size, "texture_pairs": texture_residual.size}
+            if shape_residual.size < _MIN_PAIRS:
+                return transform, {**info, "converged": False, "constrained": 0}
+            matrix, gradient = _observable(*_robust_normal_equations(shape_jacobian, shape_residual), units)
+            if texture_residual.size >= _MIN_TEXTURE:
+                texture_matrix, texture_gradient = _robust_normal_equations(texture_jacobian, texture_residual)
+                matrix = matrix + texture_matrix / correlation[level]
+                gradient = gradient + texture_gradient / correlation[level]
+            step, info["constrained"] = _regularised_step(
+                matrix, gradient, prior, _twist(np.linalg.solve(start, transform))
+            )
+            transform = transform @ _rigid(step)
+            info["iterations"] += 1
+            converged = bool(np.max(np.abs(step * units)) <= tolerance * (1.0 if last else _COARSE))
+            if converged:
+                break
+    return transform, {**info, "converged": converged}
+
+
+def _texture(intensity: np.ndarray, valid: np.ndarray, sigma: float, dtype=np.float64) -> np.ndarray:
+    """Surface texture: log intensity minus its local mean, over its local standard deviation.
+
+    Distance, angle and instrument act on the intensity as smooth factors, so
+    this leaves the texture at the same contrast everywhere, also on weakly
+    textured surfaces beside strong edges.
+
+    Parameters
+    ----------
+    intensity : (H, W) ndarray
+        Camera intensity.
+    valid : (H, W) ndarray of bool
+    sigma : float, pixels
+        Scale of the Gaussian windows of the local mean and standard deviation
+        (normalised over valid pixels).
+    dtype : numpy float type
+        Of the normalisation weights; the computation runs in the wider of it
+        and the intensity's type (float32 blurs run ~10x faster than float64).
+
+    Returns
+    -------
+    (H, W) ndarray
+        In local standard deviations; NaN on invalid pixels and non-positive intensities.
+    """
+    usable = valid & (intensity > 0)
+    level = np.where(usable, np.log(np.where(usable, intensity, 1.0)), 0.0)
+    weight = np.maximum(cv2.GaussianBlur(usable.astype(dtype), (0, 0), sigma), np.finfo(dtype).tiny)
+    detail = np.where(usable, level - cv2.GaussianBlur(level, (0, 0), sigma) / weight, 0.0)
+    spread = np.sqrt(cv2.GaussianBlur(detail * detail, (0, 0), sigma) / weight)
+    return np.where(usable, detail / np.maximum(spread, np.finfo(np.float32).eps), np.nan)
+
+
+def _feature_image(intensity: np.ndarray, valid: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Make an 8-bit image of the surface texture (:func:`_texture`) and the mask where keypoints may lie.
 
     Parameters
     ----------
@@ -296,17 +648,13 @@ def _feature_image(intensity: np.ndarray, valid: np.ndarray, sigma: float) -> tu
     Returns
     -------
     image : (H, W) ndarray of uint8
-        Mid-grey on invalid pixels.
+        +-3 local standard deviations span 0..255; mid-grey on invalid pixels.
     mask : (H, W) ndarray of uint8
         255 at least :data:`_FEATURE_MARGIN` pixels from invalid pixels and the border.
     """
-    usable = valid & (intensity > 0)
-    level = np.where(usable, np.log(np.where(usable, intensity, 1.0)), 0.0)
-    weight = np.maximum(cv2.GaussianBlur(usable.astype(np.float64), (0, 0), sigma), np.finfo(np.float64).tiny)
-    detail = np.where(usable, level - cv2.GaussianBlur(level, (0, 0), sigma) / weight, 0.0)
-    spread = np.sqrt(cv2.GaussianBlur(detail * detail, (0, 0), sigma) / weight)
-    score = detail / np.maximum(spread, np.finfo(np.float32).eps)
-    scaled = (score + _CLIP) * (255.0 / (2.0 * _CLIP))
+    score = _texture(intensity, valid, sigma)
+    usable = np.isfinite(score)
+    scaled = (np.where(usable, score, 0.0) + _CLIP) * (255.0 / (2.0 * _CLIP))
     image = np.where(usable, np.clip(scaled, 0.0, 255.0), 127.5).astype(np.uint8)
     kernel = np.ones((2 * _FEATURE_MARGIN + 1,) * 2, np.uint8)
     mask = cv2.erode(usable.astype(np.uint8) * 255, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
@@ -378,6 +726,9 @@ def _options(method: str, options: Mapping, auto: bool) -> dict:
     smooth = chosen.get("smooth", 1)
     if int(smooth) != smooth or smooth < 1 or smooth % 2 == 0:
         raise ValueError(f"smooth must be an odd integer >= 1, got {chosen['smooth']!r}")
+    for bound in ("max_translation", "max_rotation"):
+        if bound in chosen and not chosen[bound] > 0:
+            raise ValueError(f"{bound} must be > 0, got {chosen[bound]!r}")
     return chosen
 
 
@@ -413,6 +764,109 @@ def _identity(grid: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarr
     return tuple(np.meshgrid(columns.astype(np.float64), rows.astype(np.float64)))
 
 
+def _pose_refiner(ingest: xr.Dataset, xyz: np.ndarray, points: np.ndarray, ref: int, grid, opts: dict):
+    """Build the pose refinement of the poses method (:func:`_refine_pose`).
+
+    Parameters
+    ----------
+    ingest : Dataset
+        The item's ingest cube (``intensity``, ``valid``, attrs ``camera``).
+    xyz : (view, h, w, 3) ndarray, metres
+        Every view's points, its camera frame; NaN = invalid.
+    points : (h, w, 3) ndarray, metres
+        The reference view's points, range averaged (:func:`_smooth_range`).
+    ref : int
+        The reference view.
+    grid : (columns, rows)
+        Sensor indices of the grid.
+    opts : dict
+        The poses method's options.
+
+    Returns
+    -------
+    callable
+        ``refine(index, transform, where)``: the reference-to-view ``transform``
+        (4, 4) of view ``index`` refined, and its diagnostics; RegistrationError
+        starting with ``where`` when the refinement fails or moves it too far.
+    """
+    intrinsics = ingest.attrs["camera"]["intrinsics"]
+    intensity = np.asarray(ingest["intensity"].values)
+    valid = np.asarray(ingest["valid"].values, dtype=bool)
+    tolerances = opts["tolerance"], opts["relative"]
+    stride = max(1, round(np.sqrt(points.shape[0] * points.shape[1] / _REFINE_SAMPLES)))
+    normals = plane_normals(xyz[ref], _REFINE_WINDOW)
+    target = np.where(np.isfinite(normals), points, np.nan)
+    # texture samples whose normalisation and blur windows keep off depth edges: the edges move
+    # with the parallax between views, and the surfaces beside them are seen differently
+    inside = np.minimum(
+        cv2.distanceTransform(np.isfinite(normals[..., 0]).astype(np.uint8), cv2.DIST_L2, 5),
+        _interior(np.linalg.norm(points, axis=-1), *tolerances),
+    )
+    texture = _texture(intensity[ref], valid[ref], _REFINE_CONTRAST, np.float32)
+    sample = points[::stride, ::stride].reshape(-1, 3)
+    known = np.isfinite(sample).all(axis=-1)
+    sample = sample[known]
+    textures = [
+        np.where(inside > _REFINE_CONTRAST + blur, _blurred(texture, blur), np.nan)[::stride, ::stride].ravel()[known]
+        for blur in _REFINE_LEVELS
+    ]
+    origin = (grid[1][0], grid[0][0])
+    correlation = [_correlated(blur, stride) for blur in _REFINE_LEVELS]
+    prior = 1.0 / np.repeat([np.deg2rad(_PRIOR[0]), _PRIOR[1]], 3) ** 2
+
+    def refine(index: int, relative: np.ndarray, where: str):
+        source = xyz[index][::stride, ::stride].reshape(-1, 3)
+        source = source[np.isfinite(source).all(axis=-1)]
+        distance = np.linalg.norm(xyz[index], axis=-1)
+        view_texture = _texture(intensity[index], valid[index], _REFINE_CONTRAST, np.float32)
+        view_inside = _interior(distance, *tolerances)
+        sampled = [
+            _sampled(np.where(view_inside > _REFINE_CONTRAST + blur, view_texture, np.nan), distance, blur)
+            for blur in _REFINE_LEVELS
+        ]
+        scale = float(np.nanmedian(distance))  # metres of surface motion per radian
+        start = np.linalg.inv(relative)
+        transform, info = _refine_pose(
+            start,
+            lambda current: _point_to_plane(current, source, target, normals, intrinsics, grid, *tolerances),
+            lambda current, level: _texture_residuals(
+                np.linalg.inv(current), sample, textures[level], sampled[level], intrinsics, origin, *tolerances
+            ),
+            correlation,
+            prior,
+            np.repeat([scale, 1.0], 3),
+            _REFINE_STEP * scale / max(intrinsics["fx"], intrinsics["fy"]),
+        )
+        correction = np.linalg.solve(start, transform)
+        twist = _twist(correction)
+        moved = {
+            "correction_mm": 1e3 * float(np.linalg.norm(twist[3:])),
+            "correction_deg": float(np.rad2deg(np.linalg.norm(twist[:3]))),
+        }
+        if info["pairs"] < _MIN_PAIRS:
+            raise RegistrationError(
+                f"{where}: only {info['pairs']} of the view's points lie on the reference surface within "
+                f"max(tolerance, relative * range): too few to refine its pose; check the pose, or map with the "
+                f"recorded poses (refine=False)"
+            )
+        if not info["converged"]:
+            raise RegistrationError(
+                f"{where}: the pose refinement did not converge in {info['iterations']} iterations "
+                f"(correction so far {moved['correction_mm']:.2f} mm, {moved['correction_deg']:.3f} deg); "
+                f"check the view, or map with the recorded poses (refine=False)"
+            )
+        if moved["correction_mm"] > 1e3 * opts["max_translation"] or moved["correction_deg"] > opts["max_rotation"]:
+            raise RegistrationError(
+                f"{where}: the pose refinement moves the view by {moved['correction_mm']:.2f} mm and "
+                f"{moved['correction_deg']:.3f} deg, beyond max_translation={opts['max_translation']} m or "
+                f"max_rotation={opts['max_rotation']} deg: the recorded pose is far off (units, camera.hand_eye?) "
+                f"or the refinement locked onto another surface"
+            )
+        return np.linalg.inv(transform), {**moved, "correction": correction.tolist(), **info}
+
+    return refine
+
+
 def _pose_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict):
     """Build the poses method: a function of a view index giving (col, row, diagnostics)."""
     views = [str(view) for view in ingest["view"].values]
@@ -421,12 +875,20 @@ def _pose_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict):
     intrinsics = ingest.attrs["camera"]["intrinsics"]
     xyz = np.asarray(ingest["xyz"].transpose("view", "y", "x", "axis").values, dtype=np.float64)
     points = _smooth_range(xyz[ref], opts["smooth"], opts["tolerance"], opts["relative"])
+    refine = _pose_refiner(ingest, xyz, points, ref, grid, opts) if opts["refine"] else None
 
     def one(index: int):
         if index == ref:
-            return *_identity(grid), {"mapped": 1.0, "occluded": 0.0, "range_rms": 0.0}
+            unmoved = {"correction_mm": 0.0, "correction_deg": 0.0, "correction": np.eye(4).tolist()} if refine else {}
+            return *_identity(grid), {"mapped": 1.0, "occluded": 0.0, "range_rms": 0.0, **unmoved}
         transform = np.linalg.solve(poses[index], poses[ref])
-        return _pose_map(points, transform, intrinsics, xyz[index], *grid, opts["tolerance"], opts["relative"])
+        refined = {}
+        if refine is not None:
+            transform, refined = refine(index, transform, f"item {item!r}, view {views[index]!r}")
+        col, row, diagnostics = _pose_map(
+            points, transform, intrinsics, xyz[index], *grid, opts["tolerance"], opts["relative"]
+        )
+        return col, row, {**diagnostics, **refined}
 
     return one
 
@@ -528,9 +990,14 @@ def registration_maps(
         Poses: ``tolerance`` (metres) and ``relative``: the view measuring a
         range shorter than the point's by more than ``max(tolerance, relative
         * range)`` at its nearest pixel hides the point (the same test decides
-        which neighbours are on one surface for smoothing); ``smooth``: odd
-        window (pixels) over which the reference range is averaged (1 = the
-        raw points). Homography: ``detector`` (a key of :data:`DETECTORS`),
+        which neighbours are on one surface for smoothing, and which point
+        pairs the pose refinement keeps); ``smooth``: odd window (pixels) over
+        which the reference range is averaged (1 = the raw points);
+        ``refine`` (bool): refine each view's pose against the reference
+        view's before mapping (the recorded poses need only be right to a few
+        mm and tenths of a degree); ``max_translation`` (metres) and
+        ``max_rotation`` (degrees): a correction beyond either is refused.
+        Homography: ``detector`` (a key of :data:`DETECTORS`),
         ``ratio`` (Lowe's test), ``threshold`` (MAGSAC++ inlier threshold,
         pixels), ``min_matches``, ``min_inliers``, ``contrast_sigma`` (pixels,
         scale of the local contrast normalisation of the log intensity the
@@ -553,13 +1020,22 @@ def registration_maps(
         coordinates to the view's); for ``"poses"`` ``mapped`` and
         ``occluded`` (fractions of the reference pixels) and ``range_rms``
         (metres, measured minus projected range where mapped: checks the
-        poses).
+        poses), and with ``refine`` ``correction`` (4 x 4: the refined
+        camera-to-world pose is the recorded one times it; identity for the
+        reference view), ``correction_mm`` and ``correction_deg`` (its
+        translation and rotation angle), ``iterations``, ``pairs`` and
+        ``texture_pairs`` (point-to-plane and texture residuals in the last
+        iteration; the texture term needs 300) and
+        ``constrained`` (pose directions the data fixed; 6 on a textured
+        surface, 3 on a plane without usable texture).
 
     Raises
     ------
     RegistrationError
         Naming the item and view: too few matches or inliers (homography),
-        poses requested but missing or not rigid, unknown reference view.
+        poses requested but missing or not rigid, a pose refinement that does
+        not converge or corrects a pose beyond ``max_translation`` /
+        ``max_rotation``, unknown reference view.
     ValueError, TypeError
         Unknown method or option, or non-contiguous ``y``/``x``.
     """

@@ -36,7 +36,7 @@ from surffin.method.geometry import (
     mixed_pixels,
 )
 from surffin.method.noise import relative_noise
-from surffin.method.registration import register, registration_maps, warp
+from surffin.method.registration import POSE_OPTIONS, register, registration_maps, warp
 from surffin.method.roughness import roughness_map
 from surffin.method.scattering import DEFAULT_MIN_SPREAD, fit_scattering
 
@@ -101,12 +101,30 @@ def reflectance_stage(ingest: xr.Dataset, aoi: xr.Dataset, calibration: xr.Datas
 
 
 def registration_stage(
-    ingest: xr.Dataset, aoi: xr.Dataset, reflectance: xr.Dataset, *, method: str = "auto", roi=None
+    ingest: xr.Dataset,
+    aoi: xr.Dataset,
+    reflectance: xr.Dataset,
+    *,
+    method: str = "auto",
+    roi=None,
+    refine: bool = True,
+    max_translation: float = POSE_OPTIONS["max_translation"],
+    max_rotation: float = POSE_OPTIONS["max_rotation"],
 ) -> xr.Dataset:
-    """Reflectance and AOI of every view on the reference view's grid (method step 4)."""
+    """Reflectance and AOI of every view on the reference view's grid (method step 4).
+
+    With poses, ``refine`` refines each view's pose against the reference
+    view's first, refusing a correction beyond ``max_translation`` (metres) or
+    ``max_rotation`` (degrees); the corrections are in the attrs
+    (``diagnostics``). The homography ignores the three.
+    """
     roi = Roi.from_mapping(roi)
-    # The roi picks the plane a homography registers (a specimen on its board); poses need none.
-    options = {"roi": {"y": list(roi.y), "x": list(roi.x)}} if roi is not None and method != "poses" else {}
+    options = {}
+    if method != "homography":
+        options.update(refine=refine, max_translation=max_translation, max_rotation=max_rotation)
+    if roi is not None and method != "poses":
+        # the roi picks the plane a homography registers (a specimen on its board); poses need none
+        options["roi"] = {"y": list(roi.y), "x": list(roi.x)}
     maps = registration_maps(ingest.compute(), method=method, **options)
     both = xr.Dataset({"reflectance": reflectance["reflectance"], "aoi": aoi["aoi"]})
     registered = register(both.compute(), maps)
