@@ -1,5 +1,6 @@
 """Figures and tables of the report: each from small synthetic stores, the calibration's kept samples, the report."""
 
+import io
 import json
 from pathlib import Path
 
@@ -7,7 +8,10 @@ import numpy as np
 import pandas as pd
 import pytest
 import xarray as xr
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.image import imread
+from matplotlib.patches import Rectangle
+from PIL import Image
 
 import surffin
 from surffin.grid import Roi
@@ -17,6 +21,8 @@ from surffin.method.geometry import angle_of_incidence
 from surffin.method.roughness import roughness_relation
 from surffin.pipeline.analyses import run_figures
 from surffin.pipeline.run import run_roughness_map
+from surffin.report import figures
+from surffin.report.canvas import DPI, figure, save
 from surffin.report.figures import (
     FIGURE_KINDS,
     accuracy_table,
@@ -244,6 +250,43 @@ def test_feature_figures_are_drawn(tmp_path):
     assert_drawn(tmp_path / "with.png")
     assert not np.array_equal(without, shown)
     assert_drawn(plot_feature_space(training_set(), tmp_path / "space.png"))
+
+
+def test_feature_figure_keeps_its_scales_roi_and_legend(tmp_path, monkeypatch):
+    drawn = []
+    monkeypatch.setattr(figures, "save", lambda fig, path: drawn.append(fig) or Path(path))
+    features, registered = item_stores()
+    uncertain = features.assign(R0_uncertainty=0.01 * features["R0"], n_uncertainty=0.02 * features["n"])
+    plot_features(uncertain, registered, tmp_path / "f.png", roi=ROI)
+    (fig,) = drawn
+    FigureCanvasAgg(fig).draw()
+    bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
+    names = ["R0", "n", "variability", "R0_uncertainty", "n_uncertainty"]
+    assert sorted(bar.get_ylabel() for bar in bars) == sorted(f"{name} (1)" for name in names)
+    for bar in bars:  # each colour scale readable: at least two labelled values
+        assert len([label for label in bar.get_yticklabels() if label.get_text()]) >= 2
+    images = [ax for ax in fig.axes if ax.images and ax not in bars]
+    assert len(images) == 5
+    assert all(any(isinstance(patch, Rectangle) for patch in ax.patches) for ax in images)  # the roi
+    titles = {ax.get_title() for ax in images}
+    assert "standard uncertainty of the smoothed R0 (log scale)" in titles
+    assert "R0: reflectance at normal incidence" in titles  # linear: no claim of a log scale
+    (legend,) = [ax.get_legend() for ax in fig.axes if ax.get_legend()]
+    entries = [text.get_text() for text in legend.get_texts()]
+    assert entries[:3] == ["view v00", "view v01", "view v02"] and entries[3].startswith("model at median R0 = ")
+
+
+def test_a_saved_png_has_matplotlibs_pixels_and_resolution(tmp_path):
+    fig = figure(3.0, 2.0)
+    ax = fig.add_subplot()
+    ax.imshow(np.random.default_rng(0).random((5, 7)))
+    ax.set_title("θ")
+    path = save(fig, tmp_path / "ours.png")
+    theirs = io.BytesIO()
+    fig.savefig(theirs, format="png", dpi=DPI)
+    with Image.open(path) as image, Image.open(theirs) as reference:
+        np.testing.assert_array_equal(np.asarray(image), np.asarray(reference))
+        assert image.info["dpi"] == pytest.approx((DPI, DPI), abs=0.05)  # as pixels per metre
 
 
 def test_label_map_shows_the_labels(tmp_path):

@@ -1,0 +1,129 @@
+"""The report's figures: CPU seconds per figure kind, against saving an empty figure.
+
+Run by hand: ``python benchmarks/bench_figures.py [--campaign DIR] [--repeat 7]``. Without ``--campaign``
+it renders the ``paper`` preset into a temporary folder. The stores are made once, as the workflow
+makes them: the calibration, every item's chain (``bench_chunks.run_chain``), the training set of the
+specimens and the first scene's labels. Then each figure kind but ``roughness`` (it needs the
+specimens' roughness) is written by :func:`~surffin.report.figures.write_figures` from those stores
+(``features``: the first specimen, with its roi), the kinds taking turns so that the machine's load
+(it is shared) falls on all of them alike; one warm-up round is not counted. The reference is
+matplotlib alone saving an empty figure of the size of the feature figure as PNG. Prints per kind
+the median CPU seconds of the process (``time.process_time``) over the rounds and its ratio to the
+reference.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from _paper import paper_campaign  # benchmarks/_paper.py: this folder is on sys.path when run as a script
+from bench_chunks import CONFIG, quiet_logs, run_chain
+
+from surffin.method.stages import labels_stage
+from surffin.pipeline import parameters
+from surffin.pipeline.run import run_calibration, run_stage, run_training
+from surffin.report.canvas import DPI
+from surffin.report.figures import write_figures
+
+#: Size of the feature figure, inches: that of the reference.
+REFERENCE_SIZE = (19.0, 9.5)
+
+
+def make_stores(camp, folder: Path, specimen: str, scene: str) -> dict[str, Path]:
+    """Write the calibration, every item's chain, the training set and the scene's labels; returns the figures' stores.
+
+    ``features`` and ``registered`` are the specimen's.
+    """
+    calibration = run_calibration(
+        camp.path, folder / "calibration.zarr", params=parameters.calibration_parameters(CONFIG)
+    )
+    chains = {name: run_chain(camp, name, folder, calibration)[0] for name in camp.items}
+    training = run_training(
+        folder / "training.zarr",
+        specimens={
+            name: {
+                "store": chains[name]["features"],
+                "class": item.cls,
+                "roi": None if item.roi is None else item.roi.as_mapping(),
+            }
+            for name, item in camp.specimens.items()
+        },
+        max_per_class=CONFIG["classify"]["max_training_samples"],
+    )
+    labels = run_stage(
+        labels_stage,
+        folder / "labels" / f"{scene}.zarr",
+        stores={"features": chains[scene]["features"], "training": training},
+        params=parameters.label_parameters(CONFIG),
+    )
+    return {
+        "calibration": calibration,
+        "training": training,
+        "features": chains[specimen]["features"],
+        "registered": chains[specimen]["registered"],
+        "labels": labels,
+        "ingest": chains[scene]["ingest"],
+    }
+
+
+def reference() -> None:
+    """Save an empty figure of :data:`REFERENCE_SIZE` as PNG, with matplotlib alone."""
+    from matplotlib.figure import Figure
+
+    Figure(figsize=REFERENCE_SIZE).savefig(io.BytesIO(), format="png", dpi=DPI)
+
+
+def main():
+    """Make the stores, write each figure kind in turns and print the table."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--campaign", type=Path, help="a rendered paper campaign")
+    parser.add_argument("--repeat", type=int, default=7, help="counted rounds")
+    args = parser.parse_args()
+    quiet_logs()
+    with paper_campaign(args.campaign) as (camp, _), tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp)
+        specimen, scene = next(iter(camp.specimens)), next(iter(camp.scenes))
+        stores = make_stores(camp, out, specimen, scene)
+        figures = {
+            "features": {"features": stores["features"], "registered": stores["registered"]},
+            "labels": {"labels": stores["labels"], "ingest": stores["ingest"]},
+            "calibration_fit": {"calibration": stores["calibration"]},
+            "calibration_r2": {"calibration": stores["calibration"]},
+            "wall_reflectance": {"calibration": stores["calibration"]},
+            "feature_space": {"training": stores["training"]},
+        }
+        kinds = {
+            "reference": reference,
+            **{
+                kind: lambda kind=kind, inputs=inputs: write_figures(
+                    {kind: out / f"{kind}.png"}, inputs, roi=camp.items[specimen].roi
+                )
+                for kind, inputs in figures.items()
+            },
+        }
+        times = {kind: [] for kind in kinds}
+        for round_ in range(args.repeat + 1):
+            for kind, draw in kinds.items():
+                start = time.process_time()
+                draw()
+                if round_:
+                    times[kind].append(time.process_time() - start)
+        print(
+            f"figures of the paper campaign (features: {specimen}, labels: {scene}), "
+            f"CPU seconds, {args.repeat} rounds; reference: an empty {REFERENCE_SIZE[0]}x{REFERENCE_SIZE[1]} in "
+            f"figure saved as PNG at {DPI} dpi"
+        )
+        print(f"{'figure':18s}{'median s':>10s}{'ratio':>8s}")
+        base = statistics.median(times["reference"])
+        for kind, values in times.items():
+            median = statistics.median(values)
+            print(f"{kind:18s}{median:10.3f}{median / base:8.2f}")
+
+
+if __name__ == "__main__":
+    main()
