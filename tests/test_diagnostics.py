@@ -16,6 +16,7 @@ import surffin
 from surffin.analysis.diagnostics import (
     coefficient_statistics,
     compare_calibrations,
+    process_specimens,
     relative_difference,
     representative_specimens,
     spread,
@@ -24,11 +25,16 @@ from surffin.analysis.diagnostics import (
 )
 from surffin.errors import CalibrationError
 from surffin.grid import Roi
+from surffin.io.ingest import ingest_item
 from surffin.io.store import open_store
 from surffin.method.calibration import TERMS, calibration_set, instrument_function
+from surffin.method.features import select_roi
 from surffin.method.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW
+from surffin.method.stages import process_item
 from surffin.pipeline.analyses import run_calibration_diagnostics
+from surffin.pipeline.parameters import read_config
 from surffin.pipeline.run import run_calibration
+from surffin.pipeline.workflow import Plan
 from surffin.report.diagnostics import CORRELATION_FIGURE, REPEATABILITY_FIGURE
 from surffin.simulate import PRESETS
 from surffin.simulate.plan import REPEAT_FOLDERS
@@ -313,6 +319,38 @@ def test_repeatability_of_two_calibrations(report):
     for name in ("first", "repeat"):
         assert report["truth"][name]["calibration"]["median_abs_percent"] < 5
     assert report["truth"]["correlation"]["terms"] == ["A", "B", "C", "D"]
+
+
+def test_specimens_with_the_repeat_calibration_are_what_the_item_chain_makes(tiny):
+    # the repeat's runs reuse the first run's AOI and registration maps, and fit the roi and a margin only
+    root, first, repeat = tiny
+    camp = surffin.read_campaign(root / "raw")
+    calibrations = {"first": open_store(first).load(), "repeat": open_store(repeat).load()}
+    out = process_specimens(camp, calibrations, ITEM_PARAMS)
+    for name, runs in out.items():
+        roi = camp.specimens[name].roi
+        assert roi is not None and runs["repeat"].sizes["y"] == roi.shape[0]
+        chain = process_item(ingest_item(camp, name), calibrations["repeat"], roi=roi, **ITEM_PARAMS)
+        expected = select_roi(xr.merge([chain["registered"]["reflectance"], chain["features"]], compat="override"), roi)
+        for variable in ("reflectance", "R0", "n", "R0_fit", "n_fit"):
+            np.testing.assert_array_equal(runs["repeat"][variable].values, expected[variable].values)
+
+
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
+def test_the_workflow_job_reads_the_specimens_stores_without_changing_a_number(tiny_run, tmp_path):
+    processed = tiny_run / "processed"
+    config = {**read_config(), "campaign": str(tiny_run / "raw"), "processed": str(processed)}
+    plan = Plan.read(tiny_run / "raw", config)
+    assert set(plan.diagnostics_stores()) == {"S1", "S2", "S3", "S4"}
+    in_memory = run_calibration_diagnostics(
+        tmp_path / "diagnostics.json",
+        calibration=processed / "calibration.zarr",
+        repeat=processed / "diagnostics" / "calibration-repeat.zarr",
+        campaign=tiny_run / "raw",
+        item_params=plan.diagnostics_item_parameters(),
+    )
+    written = json.loads((processed / "diagnostics" / "calibration.json").read_text())
+    assert json.loads(in_memory.read_text()) == written
 
 
 def test_repeatability_of_a_calibration_with_itself_is_zero(tiny):

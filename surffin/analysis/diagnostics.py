@@ -17,11 +17,11 @@ paper's numbers (:data:`surffin.paper.CALIBRATION`) and the truth's own (``<camp
 
 Repeatability, against a calibration of a repeat acquisition: relative differences of the coefficients, of k, f
 and k f over the observed (d, theta) range, and of the reflectance and R0, n of the wall views and specimens
-(each processed with each calibration by :func:`surffin.method.stages.process_item`); the truth is compared the
-same way. A relative difference is ``(a - b) / ((a + b) / 2)`` in %, but ``(a - b) / |mean|`` with the image
-mean for the coefficients (C and D come near zero where their noise is large). The paper does not say which
-statistic its numbers are: each is summarised by median |.| (headline), mean (systematic part), std and 95th
-percentile of |.|. :func:`calibration_report` gathers it all, :mod:`surffin.report.diagnostics` draws it, and
+(:func:`process_specimens`); the truth is compared the same way. A relative difference is
+``(a - b) / ((a + b) / 2)`` in %, but ``(a - b) / |mean|`` with the image mean for the coefficients (C and D
+come near zero where their noise is large). The paper does not say which statistic its numbers are: each is
+summarised by median |.| (headline), mean (systematic part), std and 95th percentile of |.|.
+:func:`calibration_report` gathers it all, :mod:`surffin.report.diagnostics` draws it, and
 :func:`surffin.pipeline.analyses.run_calibration_diagnostics` is the workflow's job.
 """
 
@@ -38,6 +38,7 @@ import numpy as np
 import xarray as xr
 
 from surffin.errors import StoreError
+from surffin.grid import Roi
 from surffin.io.files import write_text
 from surffin.method.calibration import (
     TERMS,
@@ -50,7 +51,6 @@ from surffin.method.scattering import DEFAULT_MIN_SPREAD, fit_scattering
 from surffin.paper import CALIBRATION as PAPER_CALIBRATION
 
 if TYPE_CHECKING:
-    from surffin.grid import Roi
     from surffin.io.campaign import Campaign
 
 __all__ = [
@@ -62,6 +62,7 @@ __all__ = [
     "observed_grid",
     "compare_calibrations",
     "wall_features",
+    "SPECIMEN_STORES",
     "process_specimens",
     "representative_specimens",
     "CalibrationReport",
@@ -76,8 +77,12 @@ _MAD_SIGMA = 1.4826
 # Percentiles of the wall observations' distance and AOI that bound the (d, theta) grid, and its size.
 _GRID_PERCENTILES = (1, 99)
 _GRID_SIZE = 7
+# Pixels whose instrument functions on the grid are compared at a time (a few MB of temporaries).
+_GRID_BLOCK = 4096
 # Variables of the specimens compared between calibrations.
 _SPECIMEN_VARIABLES = ("reflectance", "R0", "n", "R0_fit", "n_fit")
+#: The stores of a specimen that :func:`process_specimens` reads, by name: the stage that writes each.
+SPECIMEN_STORES = {"ingest": "ingest", "aoi": "aoi", "registered": "registration", "features": "features"}
 
 
 def _plain(value):
@@ -169,16 +174,29 @@ def relative_difference(a, b, scale: float | None = None) -> dict[str, float | i
         ``mean_percent`` (the systematic part), ``std_percent``,
         ``p95_abs_percent``; None without a finite pair.
     """
-    a, b = np.broadcast_arrays(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64))
-    # in place where possible: the wall's reflectances are ~10^7 pairs
-    d = np.subtract(a, b)
+    return _summary(_relative(a, b, scale))
+
+
+def _relative(a, b, scale: float | None = None) -> np.ndarray:
+    """Return the relative differences of :func:`relative_difference`, in %, flattened (NaN or inf where undefined)."""
+    a, b = np.asarray(a), np.asarray(b)
+    # in float64, without float64 copies of the inputs and in place where possible: the wall's reflectances
+    # are ~10^7 pairs
+    d = np.subtract(a, b, dtype=np.float64).ravel()
     with np.errstate(divide="ignore", invalid="ignore"):
         if scale is None:
-            d /= np.add(a, b)
+            d /= np.add(a, b, dtype=np.float64).ravel()
             d *= 200.0
         else:
             d *= 100.0 / abs(scale)
-    d = d[np.isfinite(d)]
+    return d
+
+
+def _summary(d: np.ndarray) -> dict[str, float | int | None]:
+    """Summarise the finite relative differences in ``d`` (flat float64, overwritten) as :func:`relative_difference`."""
+    finite = np.isfinite(d)
+    if not finite.all():
+        d = d[finite]
     if d.size == 0:
         return {"n": 0, "median_abs_percent": None, "mean_percent": None, "std_percent": None, "p95_abs_percent": None}
     mean, std = float(d.mean()), float(d.std())
@@ -296,9 +314,19 @@ def compare_calibrations(first: xr.Dataset, second: xr.Dataset, grid, region: Ro
     a, b = a[:, both, None], b[:, both, None]
     ka, kb = float(first.attrs["scale_k"]), float(second.attrs["scale_k"])
     distance, aoi = (np.ravel(part) for part in np.broadcast_arrays(*grid))
-    fa, fb = instrument_function(a, distance, aoi), instrument_function(b, distance, aoi)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        worst = np.abs(200.0 * (fa - fb) / (fa + fb))
+    # f and k f pixel block by pixel block: their temporaries stay small; the differences are those of the
+    # whole (pixel, grid) arrays, in the same order
+    pixels, points = a.shape[1], distance.size
+    f_differences, kf_differences, worst = np.empty(pixels * points), np.empty(pixels * points), np.empty(pixels)
+    for start in range(0, pixels, _GRID_BLOCK):
+        block, flat = slice(start, start + _GRID_BLOCK), slice(start * points, (start + _GRID_BLOCK) * points)
+        fa, fb = instrument_function(a[:, block], distance, aoi), instrument_function(b[:, block], distance, aoi)
+        f_differences[flat], kf_differences[flat] = _relative(fa, fb), _relative(ka * fa, kb * fb)
+        largest = np.subtract(fa, fb)  # |200 (fa - fb) / (fa + fb)|, in place
+        largest *= 200.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            largest /= np.add(fa, fb)
+        worst[block] = np.abs(largest, out=largest).max(axis=1)
     return {
         "n_pixels": int(both.sum()),
         "coefficients": {
@@ -307,10 +335,10 @@ def compare_calibrations(first: xr.Dataset, second: xr.Dataset, grid, region: Ro
         },
         "scale_k": {"first": ka, "second": kb, "difference_percent": 200.0 * (ka - kb) / (ka + kb)},
         "instrument_function": {
-            **relative_difference(fa, fb),
-            "median_pixel_max_abs_percent": float(np.median(worst.max(axis=1))) if worst.size else None,
+            **_summary(f_differences),
+            "median_pixel_max_abs_percent": float(np.median(worst)) if worst.size else None,
         },
-        "calibration": relative_difference(ka * fa, kb * fb),
+        "calibration": _summary(kf_differences),
     }
 
 
@@ -440,22 +468,78 @@ def representative_specimens(campaign: Campaign) -> list[str]:
     return list(first.values())
 
 
-def process_specimens(
-    campaign: Campaign, calibrations: Mapping[str, xr.Dataset], params: Mapping | None = None
-) -> dict[str, dict[str, xr.Dataset]]:
-    """Process the :func:`representative_specimens` with each calibration, in memory.
+def _with_calibration(
+    first: Mapping[str, xr.Dataset], calibration: xr.Dataset, roi: Roi | None, params: Mapping
+) -> dict[str, xr.Dataset]:
+    """Register and fit a specimen's views with another calibration, from its stores with the first one.
 
-    Uses :func:`surffin.method.stages.process_item`.
+    The item chain after the AOI (:func:`surffin.method.stages.process_item`),
+    but the views are warped by the registration maps of ``first["registered"]``:
+    :func:`~surffin.method.stages.registration_stage` makes them from the
+    ingest alone, so they are those it would make again. With a roi, only the
+    roi and a margin of the smoothing window are registered and fitted: the
+    fit is per pixel and the smoothing of R0 and n reaches half a window, so
+    the roi's pixels are those of the whole grid.
+
+    Parameters
+    ----------
+    first : mapping of str to Dataset
+        ``ingest``, ``aoi`` and ``registered`` (``map_x``, ``map_y``) of the specimen.
+    calibration : Dataset
+    roi : Roi or None
+        The specimen's.
+    params : mapping
+        Stage parameters; :func:`~surffin.method.stages.features_stage` takes its own.
+
+    Returns
+    -------
+    dict
+        ``registered`` and ``features``, over the roi and its margin.
+    """
+    from surffin.method.features import DEFAULT_SIZE, select_roi
+    from surffin.method.registration import register
+    from surffin.method.stages import ITEM_CHAIN, features_stage, reflectance_stage
+
+    ingest, aoi, maps = first["ingest"], first["aoi"], first["registered"][["map_x", "map_y"]]
+    if roi is not None:
+        margin = params.get("size", DEFAULT_SIZE)
+        maps = select_roi(maps, Roi((roi.y[0] - margin, roi.y[1] + margin), (roi.x[0] - margin, roi.x[1] + margin)))
+    reflectance = reflectance_stage(ingest, aoi, calibration).compute()
+    views = xr.Dataset({"reflectance": reflectance["reflectance"], "aoi": aoi["aoi"]}).compute()
+    registered = register(views, maps.compute())
+    step = next(step for step in ITEM_CHAIN if step.function is features_stage)
+    keywords = {key: params[key] for key in step.keywords if key in params}
+    features = features_stage(registered, reflectance, aoi, roi=roi, **keywords).compute()
+    return {"registered": registered, "features": features}
+
+
+def process_specimens(
+    campaign: Campaign,
+    calibrations: Mapping[str, xr.Dataset],
+    params: Mapping | None = None,
+    stores: Mapping[str, Mapping[str, str | os.PathLike]] | None = None,
+) -> dict[str, dict[str, xr.Dataset]]:
+    """Process the :func:`representative_specimens` with each calibration, in memory, or read them from their stores.
+
+    A specimen goes through :func:`surffin.method.stages.process_item` with
+    the first calibration, unless it is in ``stores``: the workflow's stores,
+    which it processed with that calibration, are then read instead. The
+    reflectance, registration and features with each other calibration are
+    computed from that first run's ingest, AOI and registration maps, which
+    do not depend on the calibration.
 
     Parameters
     ----------
     campaign : Campaign
     calibrations : mapping of str to Dataset
-        Name -> calibration.
+        Name -> calibration; the first is the one ``stores`` were processed with.
     params : mapping, optional
         ``method`` (registration) and the stage parameters of
         :func:`~surffin.method.stages.process_item` (``window``, ``jump``, ``size``,
         ``variability_size``, ``min_views``, ``min_spread``).
+    stores : mapping, optional
+        Specimen -> :data:`SPECIMEN_STORES` name -> path of its store;
+        specimens not in it are processed from their view files.
 
     Returns
     -------
@@ -466,17 +550,25 @@ def process_specimens(
         unsmoothed fits ``R0_fit``, ``n_fit`` (y, x).
     """
     from surffin.io.ingest import ingest_item
+    from surffin.io.store import open_store
     from surffin.method.features import select_roi
     from surffin.method.stages import process_item
 
-    params = dict(params or {})
+    params, stores = dict(params or {}), dict(stores or {})
+    (first, calibration), *others = calibrations.items()
     out = {}
     for name in representative_specimens(campaign):
         item = campaign.specimens[name]
-        ingest = ingest_item(campaign, name)
+        if name in stores:
+            run = {key: open_store(stores[name][key], stage=stage) for key, stage in SPECIMEN_STORES.items()}
+            # read once: each other calibration's stages read them
+            run.update({key: run[key].load() for key in ("ingest", "aoi")})
+        else:
+            ingest = ingest_item(campaign, name)
+            run = {"ingest": ingest, **process_item(ingest, calibration, roi=item.roi, **params)}
+        runs = {first: run, **{which: _with_calibration(run, other, item.roi, params) for which, other in others}}
         out[name] = {}
-        for which, calibration in calibrations.items():
-            done = process_item(ingest, calibration, roi=item.roi, **params)
+        for which, done in runs.items():
             both = xr.merge(
                 [done["registered"][["reflectance"]], done["features"][["R0", "n", "R0_fit", "n_fit"]]],
                 compat="override",
@@ -610,6 +702,7 @@ def calibration_report(
     repeat: str | os.PathLike | None = None,
     repeat_folders: Mapping[str, str] | None = None,
     item_params: Mapping | None = None,
+    specimen_stores: Mapping[str, Mapping[str, str | os.PathLike]] | None = None,
     instrument_truth: str | os.PathLike | None = None,
 ) -> CalibrationReport:
     """Compute the calibration diagnostics of a campaign, in memory.
@@ -637,6 +730,10 @@ def calibration_report(
         Registration ``method`` and the stage parameters of the specimens
         (:func:`process_specimens`); ``min_views`` and ``min_spread`` also
         serve the wall feature fits.
+    specimen_stores : mapping, optional
+        The stores of the representative specimens processed with
+        ``calibration`` (:func:`process_specimens`' ``stores``): read instead
+        of processing them again.
     instrument_truth : path-like, optional
         The simulator's ``instrument.zarr``: each calibration is compared with it.
 
@@ -707,7 +804,7 @@ def calibration_report(
         log.info("diagnostics: no repeatability: %s", reason)
         report["repeatability"] = {"available": False, "reason": reason}
     else:
-        processed = process_specimens(camp, calibrations, item_params)
+        processed = process_specimens(camp, calibrations, item_params, specimen_stores)
         report["repeatability"] = {
             "available": True,
             "reason": None,

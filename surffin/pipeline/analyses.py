@@ -28,6 +28,7 @@ def run_calibration_diagnostics(
     campaign: str | os.PathLike,
     repeat_folders: Mapping[str, str] | None = None,
     item_params: Mapping | None = None,
+    specimen_stores: Mapping[str, Mapping[str, str | os.PathLike]] | None = None,
     instrument_truth: str | os.PathLike | None = None,
     figures_dir: str | os.PathLike | None = None,
     log_path: str | os.PathLike | None = None,
@@ -43,7 +44,7 @@ def run_calibration_diagnostics(
     ----------
     output_json : path-like
         Written atomically (:func:`surffin.analysis.diagnostics.write_report`).
-    calibration, repeat, repeat_folders, item_params, instrument_truth
+    calibration, repeat, repeat_folders, item_params, specimen_stores, instrument_truth
         As for :func:`surffin.analysis.diagnostics.calibration_report`.
     campaign : path-like
         The campaign directory.
@@ -76,6 +77,7 @@ def run_calibration_diagnostics(
             repeat=repeat,
             repeat_folders=repeat_folders,
             item_params=item_params,
+            specimen_stores=specimen_stores,
             instrument_truth=instrument_truth,
         )
         if figures_dir is not None:

@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
 
-from surffin.analysis.diagnostics import representative_specimens
+from surffin.analysis.diagnostics import SPECIMEN_STORES, representative_specimens
 from surffin.errors import CampaignError
 from surffin.io.campaign import Calibration, Campaign, read_campaign
 from surffin.io.viewfile import view_sidecars
@@ -173,11 +173,26 @@ class Plan:
         return [str(path) for path in (*self.repeat.wall, *self.repeat.reference.views)]
 
     def diagnostics_views(self) -> list[str]:
-        """Return the campaign's wall views and the views of the specimens the calibration diagnostics reprocess."""
-        camp = self.campaign
-        wall = () if camp.calibration is None else camp.calibration.wall
-        specimens = [camp.specimens[name] for name in representative_specimens(camp)]
-        return [str(path) for path in (*wall, *(view for item in specimens for view in item.views))]
+        """Return the campaign's wall views and their sidecars, which the calibration diagnostics read."""
+        calibration = self.campaign.calibration
+        return [] if calibration is None else _with_sidecars(calibration.wall)
+
+    def diagnostics_stores(self) -> dict[str, dict[str, str]]:
+        """Return the stores of the specimens the calibration diagnostics reprocess with the repeat calibration.
+
+        By specimen name (none without a repeat calibration set): they read them instead of processing the
+        specimens with the campaign's calibration again.
+        """
+        if self.repeat is None:
+            return {}
+        return {
+            name: {key: self.output(stage, name) for key, stage in SPECIMEN_STORES.items()}
+            for name in representative_specimens(self.campaign)
+        }
+
+    def diagnostics_store_files(self) -> list[str]:
+        """Return the files of :meth:`diagnostics_stores`."""
+        return [path for stores in self.diagnostics_stores().values() for path in stores.values()]
 
     def diagnostics_settings(self) -> dict:
         """Return the crop and the specimens' rois and reference views: a change reruns the diagnostics."""

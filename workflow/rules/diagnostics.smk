@@ -32,6 +32,7 @@ rule calibration_diagnostics:
         calibration=CALIBRATION,
         repeat=repeat_calibration_store,
         views=from_plan("diagnostics_views"),
+        stores=from_plan("diagnostics_store_files"),
     output:
         json=f"{PROCESSED}/diagnostics/calibration.json",
         correlation=report(
@@ -58,6 +59,7 @@ rule calibration_diagnostics:
         repeat_folders=config["calibration_repeat"],
         settings=from_plan("diagnostics_settings"),
         item_params=from_plan("diagnostics_item_parameters"),
+        stores=from_plan("diagnostics_stores"),
         code=STAGES["diagnostics"].version,
     run:
         in_worker(
@@ -68,6 +70,7 @@ rule calibration_diagnostics:
             campaign=params.campaign,
             repeat_folders=params.repeat_folders,
             item_params=params.item_params,
+            specimen_stores=params.stores,
             figures_dir=Path(output.correlation).parent,
             log_path=log[0],
         )
