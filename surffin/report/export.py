@@ -31,7 +31,7 @@ from surffin.io.files import write_atomically
 from surffin.io.store import open_store
 from surffin.method.classify import UNCLASSIFIED, UNCLASSIFIED_REASONS
 from surffin.report.canvas import figure, save
-from surffin.report.figures import class_colours, label_overlay
+from surffin.report.figures import class_colours, label_overlay, reference_view
 
 __all__ = ["PLY_FIELDS", "pixel_area", "class_areas", "label_png", "write_ply", "export_results"]
 
@@ -39,12 +39,6 @@ log = logging.getLogger("surffin")
 
 #: Feature variables written to the PLY files (as ``scalar_<name>``), with the class.
 PLY_FIELDS = ("R0", "n", "variability", "class", "R0_uncertainty", "n_uncertainty")
-
-
-def _reference(ds: xr.Dataset, grid: xr.DataArray) -> xr.Dataset:
-    """Select the reference view of a (view, y, x) store on the (y, x) grid of ``grid``."""
-    view = ds.attrs.get("reference_view", str(ds["view"].values[0]))
-    return ds.sel(view=view, y=grid["y"], x=grid["x"])
 
 
 def _focal_lengths(points: np.ndarray, camera: Mapping, y: np.ndarray, x: np.ndarray) -> tuple[float, float]:
@@ -160,7 +154,7 @@ def write_ply(path: Path, points: np.ndarray, fields: Mapping[str, np.ndarray]) 
 
 def _cloud(features: xr.Dataset, ingest: xr.Dataset, label: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Return the reference view's valid points (world frame when posed) and their fields."""
-    reference = _reference(ingest, features["R0"])
+    reference = reference_view(ingest, features["R0"])[0]
     points = reference["xyz"].transpose("y", "x", "axis").values.astype(np.float64)
     ok = reference["valid"].values & np.isfinite(points).all(axis=-1)
     pose = reference["pose"].values if "pose" in reference else np.full((4, 4), np.nan)
@@ -239,9 +233,9 @@ def _scene(name: str, processed: Path, out: Path, classes: Sequence[str], contex
     features = open_store(processed / "features" / f"{name}.zarr").load()
     ingest = open_store(processed / "ingest" / f"{name}.zarr")
     label = labels["label_filtered"].values
-    reference = _reference(ingest, labels["label"]).load()
+    reference = reference_view(ingest, labels["label"])[0].load()
     points = reference["xyz"].transpose("y", "x", "axis").values
-    aoi = _reference(open_store(processed / "aoi" / f"{name}.zarr"), labels["label"])["aoi"].values
+    aoi = reference_view(open_store(processed / "aoi" / f"{name}.zarr"), labels["label"])[0]["aoi"].values
     fx, fy = _focal_lengths(points, features.attrs.get("camera", {}), labels.y.values, labels.x.values)
     rows = class_areas(label, labels["unclassified_reason"].values, pixel_area(points, aoi, fx, fy), classes)
     paths = {kind: out / f"{name}{kind}" for kind in ("-classes.csv", "-labels.png", ".ply", "-report.pdf")}

@@ -50,6 +50,7 @@ __all__ = [
     "FIGURE_KINDS",
     "class_colours",
     "label_overlay",
+    "reference_view",
     "plot_calibration_fit",
     "plot_r2_map",
     "parameter_table",
@@ -653,13 +654,19 @@ def plot_feature_space(training: xr.Dataset, path: str | os.PathLike) -> Path:
 # --- scenes ------------------------------------------------------------------------------------
 
 
+def reference_view(ds: xr.Dataset, grid: xr.DataArray) -> tuple[xr.Dataset, str]:
+    """Select the reference view of a (view, y, x) store on the (y, x) pixels of ``grid``; return it and its stem."""
+    view = ds.attrs.get("reference_view", ds["view"].values[0])
+    return ds.sel(view=view, y=grid["y"], x=grid["x"]), str(view)
+
+
 def _intensity_background(ingest: xr.Dataset, grid: xr.DataArray) -> tuple[xr.DataArray, str]:
     """Return the reference view's intensity on the pixels of ``grid``, NaN where invalid, and the view's stem."""
-    view = ingest.attrs.get("reference_view", ingest["view"].values[0])
-    intensity = ingest["intensity"].sel(view=view)
-    if "valid" in ingest:
-        intensity = intensity.where(ingest["valid"].sel(view=view))
-    return intensity.sel(y=grid["y"], x=grid["x"]).astype(np.float64).load(), str(view)
+    reference, view = reference_view(ingest, grid)
+    intensity = reference["intensity"]
+    if "valid" in reference:
+        intensity = intensity.where(reference["valid"])
+    return intensity.astype(np.float64).load(), view
 
 
 def plot_labels(
