@@ -4,15 +4,19 @@ Run as a script (``python tests/test_packaging.py``) to rewrite ``config/README.
 """
 
 import ast
+import re
 import subprocess
 import sys
 import tomllib
 from pathlib import Path
 
+import numpy as np
+import xarray as xr
 import yaml
 from packaging.requirements import Requirement
 from packaging.version import Version
 
+from surffin.io.store import provenance, write_store
 from surffin.paper import DOI
 
 REPO = Path(__file__).resolve().parents[1]
@@ -48,6 +52,17 @@ def pinned_floors():
 
 def test_ci_floors_pin_exactly_the_pyproject_floors():
     assert pinned_floors() == floors_in_pyproject()
+
+
+def test_identical_inputs_give_identical_stores(tmp_path):
+    # why zarr's floor is 3.1.2: before it, consolidated metadata listed the arrays in the order their writes ended
+    rng = np.random.default_rng(0)
+    data = {f"v{index}": (("y", "x"), rng.random((20, 30), dtype=np.float32)) for index in range(12)}
+    ds = xr.Dataset(data, coords={"y": np.arange(20), "x": np.arange(30)}, attrs=provenance("test", {"k": 1}))
+    stores = [write_store(ds, tmp_path / f"{name}.zarr", chunks={"y": 8, "x": 8}) for name in "ab"]
+    files = [sorted(path for path in store.rglob("*") if path.is_file()) for store in stores]
+    assert [path.relative_to(stores[0]) for path in files[0]] == [path.relative_to(stores[1]) for path in files[1]]
+    assert [path.read_bytes() for path in files[0]] == [path.read_bytes() for path in files[1]]
 
 
 def test_the_library_imports_without_the_workflow_or_distributed():
@@ -123,11 +138,11 @@ def test_config_reference_names_every_key_of_the_default_config():
 
 def test_citation_prefers_the_paper():
     citation = yaml.safe_load((REPO / "CITATION.cff").read_text())
-    assert citation["cff-version"] == "1.2.0"
+    assert citation["cff-version"] == "1.2.0" and citation["version"] == __import__("surffin").__version__
     preferred = citation["preferred-citation"]
-    assert preferred["doi"] == DOI and preferred["journal"] == "Automation in Construction"
+    assert preferred["title"] == "Surface finish classification using depth camera data"
+    assert (preferred["journal"], preferred["year"], preferred["doi"]) == ("Automation in Construction", 2021, DOI)
     assert [author["family-names"] for author in preferred["authors"]] == ["Frangez", "Salido-Monzú", "Wieser"]
-    assert citation["version"] == __import__("surffin").__version__
 
 
 def test_license_file_is_shipped_and_typed_marker_present():
@@ -137,11 +152,14 @@ def test_license_file_is_shipped_and_typed_marker_present():
     assert "py.typed" in project["tool"]["setuptools"]["package-data"]["surffin"]
 
 
-def test_workflow_catalog_file_names_the_run_flags():
+def test_workflow_catalog_file_names_the_run_flags_and_no_rule_asks_for_conda():
     catalog = yaml.safe_load((REPO / ".snakemake-workflow-catalog.yml").read_text())
     flags = catalog["usage"]["mandatory-flags"]["flags"]
     assert "--config campaign=" in flags and "processed=" in flags
+    # every rule is a run: block, which snakemake runs in its own environment, never in a conda env or container
     assert catalog["usage"]["software-stack-deployment"] == {"conda": False, "singularity": False}
+    workflow = [REPO / "Snakefile", *(REPO / "workflow" / "rules").glob("*.smk")]
+    assert not [path.name for path in workflow if re.search(r"^\s+(conda|container):", path.read_text(), re.M)]
 
 
 if __name__ == "__main__":
