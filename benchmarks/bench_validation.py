@@ -1,12 +1,18 @@
 """Accuracy on the validation campaigns, against their truth and against a true-geometry ceiling.
 
-Run by hand: ``python benchmarks/bench_validation.py [--campaigns NAME ...] [--seeds 0 1 2] [--workdir DIR]
-[--config config/config.yaml] [--set SECTION.KEY=VALUE ...]``.
+Run by hand: ``python benchmarks/bench_validation.py [--campaigns NAME ...] [--imperfect] [--imperfections NAMES]
+[--seeds 0 1 2] [--workdir DIR] [--config config/config.yaml] [--set SECTION.KEY=VALUE ...]``.
 
 Each validation campaign (:data:`surffin.simulate.validation.VALIDATION`; ``paper`` and ``tiny`` too) is
 rendered at each seed into ``--workdir`` (kept, and reused by later runs) and evaluated in this process with the
-workflow's parameters (:func:`surffin.analysis.evaluation.evaluate_campaign`). Printed per campaign and seed,
-then the mean and the range over the seeds:
+workflow's parameters (:func:`surffin.analysis.evaluation.evaluate_campaign`). By default the campaigns of an
+ideal camera; ``--imperfect`` adds those of a real camera's imperfections
+(:data:`~surffin.simulate.validation.IMPERFECT`: each alone, ``val-all`` together, ``val-bare-raw`` raw files
+without poses or intrinsics), whose truth is still the true geometry; the ceiling then shows what the true AOI
+and eq. 5 instrument function make of the imperfect data (the systematics stay in it). ``--imperfections NAMES``
+renders every chosen campaign with those imperfections instead of its own (names of
+:data:`~surffin.simulate.imperfections.STANDARD`, e.g. ``--campaigns tiny --imperfections all``, a quick end-to-end
+check). Printed per campaign and seed, then the mean and the range over the seeds:
 
 - ``cal %``: median relative error of the fitted ``k f(d, theta)`` over the crop;
 - ``R0 %``, ``n %``: median relative error of the smoothed features on the specimen interiors of every item;
@@ -27,6 +33,7 @@ class, and the error rate (%) among the classified ones when only the most confi
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
@@ -45,23 +52,37 @@ CALIBRATION_BINS = (0.0, 0.5, 0.9, 0.99, 0.999, 1.000001)
 
 
 def campaigns() -> dict:
-    """Name -> (preset, fmt, units, poses) of every campaign the benchmark knows."""
+    """Name -> :class:`~surffin.simulate.validation.Validation` of every campaign the benchmark knows."""
     from surffin.simulate import PRESETS
-    from surffin.simulate.validation import VALIDATION
+    from surffin.simulate.validation import VALIDATION, Validation
 
-    known = {name: (preset, "npz", "m", True) for name, preset in PRESETS.items()}
-    for name, validation in VALIDATION.items():
-        known[name] = (validation.preset, validation.fmt, validation.units, validation.poses)
-    return known
+    return {**{name: Validation(preset) for name, preset in PRESETS.items()}, **VALIDATION}
 
 
-def render(name: str, seed: int, workdir: Path) -> Path:
-    """Return the campaign ``name`` at ``seed`` under ``workdir``, rendering it unless it is already there."""
+def render(name: str, seed: int, workdir: Path, imperfections: str | None = None) -> Path:
+    """Return the campaign ``name`` at ``seed`` under ``workdir``, rendering it unless it is already there.
+
+    ``imperfections`` (names of :data:`~surffin.simulate.imperfections.STANDARD`, comma-separated) replace
+    the campaign's own; the directory's name then carries them.
+    """
+    from surffin.simulate import named_imperfections
+
+    chosen = campaigns()[name]
+    if imperfections is not None:
+        chosen = dataclasses.replace(chosen, imperfections=named_imperfections(imperfections))
+        name = f"{name}+{imperfections.replace(',', '+')}"
     directory = workdir / f"{name}-s{seed}"
     if not (directory / "campaign.yaml").exists():
-        preset, fmt, units, poses = campaigns()[name]
         start = time.perf_counter()
-        surffin.simulate_campaign(directory, preset, seed, fmt=fmt, units=units, poses=poses)
+        surffin.simulate_campaign(
+            directory,
+            chosen.preset,
+            seed,
+            fmt=chosen.fmt,
+            units=chosen.units,
+            poses=chosen.poses,
+            imperfections=chosen.imperfections,
+        )
         print(f"  rendered {directory.name} in {time.perf_counter() - start:.0f} s", flush=True)
     return directory
 
@@ -92,7 +113,13 @@ def line(label: str, values: dict) -> str:
 def main() -> None:
     """Parse the command line, evaluate every campaign at every seed and print the tables."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--campaigns", nargs="+", default=None, help="default: every validation campaign")
+    parser.add_argument(
+        "--campaigns", nargs="+", default=None, help="default: every validation campaign of an ideal camera"
+    )
+    parser.add_argument("--imperfect", action="store_true", help="add the campaigns of a real camera's imperfections")
+    parser.add_argument(
+        "--imperfections", default=None, metavar="NAMES", help="render every campaign with these imperfections instead"
+    )
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--workdir", type=Path, default=Path("benchmarks/results/validation"))
     parser.add_argument("--config", type=Path, default=parameters.DEFAULT_CONFIG)
@@ -103,21 +130,24 @@ def main() -> None:
         key, value = setting.split("=", 1)
         section, _, leaf = key.partition(".")
         config[section][leaf] = yaml.safe_load(value)
-    from surffin.simulate.validation import VALIDATION
+    from surffin.simulate.validation import IMPERFECT, VALIDATION
 
-    names = args.campaigns or list(VALIDATION)
+    names = args.campaigns or [name for name in VALIDATION if name not in IMPERFECT]
+    names += [name for name in IMPERFECT if args.imperfect and name not in names]
     args.workdir.mkdir(parents=True, exist_ok=True)
     print(f"{'campaign, seed':26s}" + "".join(f"{key:>10s}" for key in ROWS))
     results = {}
     with dask.config.set(scheduler="threads", num_workers=2):
         for name in names:
-            results[name] = []
+            shown = name if args.imperfections is None else f"{name}+{args.imperfections}"
+            results[shown] = []
             for seed in args.seeds:
                 start = time.perf_counter()
-                result = evaluate_campaign(render(name, seed, args.workdir), **parameters.evaluation_parameters(config))
-                results[name].append(result)
+                directory = render(name, seed, args.workdir, args.imperfections)
+                result = evaluate_campaign(directory, **parameters.evaluation_parameters(config))
+                results[shown].append(result)
                 reasons = {scene: value["reasons"] for scene, value in result["scenes"].items()}
-                label = f"{name} s{seed} ({time.perf_counter() - start:.0f} s)"
+                label = f"{shown} s{seed} ({time.perf_counter() - start:.0f} s)"
                 print(line(label, row(result)), reasons, flush=True)
     print("\nmean over seeds, then min and max")
     for name, runs in results.items():

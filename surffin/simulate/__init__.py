@@ -4,10 +4,13 @@ A pinhole camera at known poses looks at planar surfaces (a calibration wall, a
 reference panel, plaster specimens on a board) whose reflectance follows the
 paper's scattering model with textured R0 and n maps; a per-pixel instrument
 function, intensity and depth noise and invalid pixels make the views behave
-like the real camera's. :func:`simulate_campaign` writes them as a campaign
-(CAMPAIGN.md layout) plus truth stores outside it.
+like the real camera's; a real camera's imperfections (lens distortion, pose
+error, mixed pixels, saturation, instrument systematics, settings sidecars,
+signed raw files) can be switched on. :func:`simulate_campaign` writes them as
+a campaign (CAMPAIGN.md layout) plus truth stores outside it.
 
-Modules: :mod:`~surffin.simulate.camera` (geometry, poses),
+Modules: :mod:`~surffin.simulate.camera` (geometry, poses, lens distortion),
+:mod:`~surffin.simulate.imperfections` (a real camera's imperfections),
 :mod:`~surffin.simulate.scene` (faces, textures, ray casting),
 :mod:`~surffin.simulate.instrument` (radiometry, noise; eq. 3 and eq. 5 written here,
 not imported from the method, so that the truth is not made by the code it checks),
@@ -41,8 +44,17 @@ _LAZY = {
     "another_piece": "presets",
     "class_material": "presets",
     "VALIDATION": "validation",
+    "IMPERFECT": "validation",
     "Validation": "validation",
+    "Imperfections": "imperfections",
+    "STANDARD": "imperfections",
+    "named_imperfections": "imperfections",
+    "perturb_pose": "imperfections",
+    "systematic_factor": "imperfections",
+    "mix_edges": "imperfections",
     "PinholeCamera": "camera",
+    "distort": "camera",
+    "undistort": "camera",
     "look_at_pose": "camera",
     "world_rays": "camera",
     "to_camera": "camera",

@@ -7,12 +7,17 @@ a campaign (CAMPAIGN.md layout) and, outside it, the truth stores of
 calibration set (``Preset.repeat_calibration``) is written into its own folders
 (:data:`~surffin.simulate.plan.REPEAT_FOLDERS`), which ``campaign.yaml`` does not
 name: it is no view of any item, only a second calibration of the same camera.
+
+The camera's imperfections (:class:`~surffin.simulate.imperfections.Imperfections`)
+change what the files say, never the truth: the views are rendered through the
+true lens from the true poses, and the truth stores hold the true geometry.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import io
+import json
 import os
 import sys
 import time
@@ -24,7 +29,9 @@ import yaml
 from surffin.errors import CampaignError
 from surffin.io.files import write_atomically
 from surffin.io.store import provenance, write_store
-from surffin.io.viewfile import VIEW_SUFFIXES, write_view
+from surffin.io.viewfile import META_SUFFIX, VIEW_SUFFIXES, sidecar_path, write_view
+from surffin.simulate.camera import PinholeCamera
+from surffin.simulate.imperfections import Imperfections, perturb_pose
 from surffin.simulate.instrument import Instrument, draw_instrument, observe
 from surffin.simulate.plan import Acquisition, plan_campaign
 from surffin.simulate.presets import PRESETS, Preset
@@ -111,7 +118,9 @@ class _Run:
 
     preset: Preset
     seed: int
+    camera: PinholeCamera
     instrument: Instrument
+    imperfections: Imperfections
     fmt: str
     units: str
     poses: bool
@@ -130,7 +139,7 @@ def _acquire(acquisition: Acquisition, run: _Run) -> Geometry:
     Geometry
         Noise-free rendering of the reference view (``acquisition.reference``).
     """
-    camera = run.preset.camera
+    camera, imperfections = run.camera, run.imperfections
     scene = Scene(acquisition.faces, run.seed, run.textures)
     folder = run.directory / acquisition.folder
     folder.mkdir(parents=True, exist_ok=True)
@@ -140,9 +149,19 @@ def _acquire(acquisition: Acquisition, run: _Run) -> Geometry:
     for index, (stem, name, pose) in enumerate(views):
         geometry = render(scene, camera, pose)
         rng = keyed_rng(run.seed, "view", acquisition.name, stem)
-        xyz, intensity = observe(geometry, run.instrument, run.preset, rng)
-        pose_written = pose if run.poses else None
-        write_view(folder / name, xyz, intensity.astype(np.float32), units=run.units, pose=pose_written)
+        xyz, intensity = observe(geometry, run.instrument, run.preset, rng, imperfections)
+        recorded = pose if imperfections.pose_error is None else perturb_pose(pose, *imperfections.pose_error, rng)
+        write_view(
+            folder / name,
+            xyz,
+            intensity.astype(np.float32),
+            units=run.units,
+            pose=recorded if run.poses else None,
+            abcy16=_abcy16(imperfections),
+        )
+        if imperfections.settings:
+            settings = json.dumps(dict(imperfections.settings)).encode("utf-8")
+            write_atomically(sidecar_path(folder / name, META_SUFFIX), settings)
         run.progress.advance()
         if index == acquisition.reference:
             reference = geometry
@@ -216,6 +235,27 @@ def _check_target(directory: Path, truth: Path, plan: list[Acquisition], fmt: st
             )
 
 
+def _abcy16(imperfections: Imperfections) -> dict | None:
+    """Return the ABCY16 encoding of raw files: signed when asked, else None (the camera's usual one)."""
+    return None if imperfections.signed_raw is None else {"signed": True, "scale": imperfections.signed_raw}
+
+
+def _camera_entry(camera: PinholeCamera, units: str, imperfections: Imperfections, fmt: str) -> dict:
+    """Return campaign.yaml's ``camera`` section: what the imperfections let the files say of the camera."""
+    entry = {"width": camera.width, "height": camera.height, "units": units}
+    if imperfections.intrinsics != "none":
+        entry["intrinsics"] = camera.intrinsics()
+        if imperfections.intrinsics == "pinhole":
+            entry["intrinsics"].pop("distortion", None)
+    if fmt in ("raw", "mixed") and imperfections.signed_raw is not None:
+        entry["abcy16"] = _abcy16(imperfections)
+    if imperfections.saturation is not None and imperfections.saturation_known:
+        entry["saturation"] = float(imperfections.saturation)
+    if imperfections.match_settings:
+        entry["match_settings"] = [name for name, _ in imperfections.settings]
+    return entry
+
+
 def _resolve_preset(preset: str | Preset) -> Preset:
     if isinstance(preset, Preset):
         return preset
@@ -233,6 +273,7 @@ def simulate_campaign(
     units: str = "m",
     poses: bool = True,
     truth: str | os.PathLike | None = None,
+    imperfections: Imperfections | None = None,
 ) -> Path:
     """Render a synthetic campaign with known truth.
 
@@ -258,6 +299,9 @@ def simulate_campaign(
     truth : path-like, optional
         Folder of the truth stores; default ``<directory>-truth``, beside the
         campaign (never inside it).
+    imperfections : Imperfections, optional
+        The real camera's imperfections to render; default none (an ideal
+        camera). The truth stays the true geometry.
 
     Returns
     -------
@@ -270,8 +314,8 @@ def simulate_campaign(
     CampaignError
         ``directory`` already holds a campaign, or stale view files.
     ValueError
-        Unknown preset, format or units, a negative seed, or ``truth`` inside
-        ``directory``.
+        Unknown preset, format or units, a negative seed, ``truth`` inside
+        ``directory``, or signed raw files asked of a campaign without raw files.
     """
     preset = _resolve_preset(preset)
     if fmt not in FORMATS:
@@ -281,16 +325,21 @@ def simulate_campaign(
     if int(seed) != seed or seed < 0:
         raise ValueError(f"seed {seed!r} must be an integer >= 0")
     seed = int(seed)
+    imperfections = imperfections or Imperfections()
+    if imperfections.signed_raw is not None and fmt not in ("raw", "mixed"):
+        raise ValueError(f"signed raw files need fmt 'raw' or 'mixed', got fmt {fmt!r}")
     directory = Path(directory)
     truth = Path(truth) if truth is not None else directory.resolve().with_name(directory.resolve().name + "-truth")
     plan = plan_campaign(preset, seed)
     _check_target(directory, truth, plan, fmt)
 
-    camera = preset.camera
+    camera = dataclasses.replace(preset.camera, distortion=imperfections.distortion)
     instrument = draw_instrument(
         camera, preset.coef_mean, preset.coef_variability, preset.gain, keyed_rng(seed, "instrument")
     )
     parameters = {"preset": dataclasses.asdict(preset), "seed": seed, "fmt": fmt, "units": units, "poses": poses}
+    if imperfections.any:
+        parameters["imperfections"] = dataclasses.asdict(imperfections)
     write_store(
         instrument_truth(instrument, preset).assign_attrs(provenance("simulate", parameters)),
         truth / "instrument.zarr",
@@ -298,7 +347,9 @@ def simulate_campaign(
     run = _Run(
         preset=preset,
         seed=seed,
+        camera=camera,
         instrument=instrument,
+        imperfections=imperfections,
         fmt=fmt,
         units=units,
         poses=poses,
@@ -310,7 +361,7 @@ def simulate_campaign(
     )
     config: dict = {
         "name": f"synthetic {preset.name} campaign, seed {seed}",
-        "camera": {"width": camera.width, "height": camera.height, "units": units, "intrinsics": camera.intrinsics()},
+        "camera": _camera_entry(camera, units, imperfections, fmt),
     }
     if preset.crop is not None:
         config["crop"] = {"y": list(preset.crop[0]), "x": list(preset.crop[1])}

@@ -3,7 +3,10 @@
 ``--preset NAME`` renders a named preset (default ``paper``; files as ``--format``,
 ``--units`` and ``--no-poses`` say, default npz in m with poses). ``--validation
 NAME`` renders a validation campaign (:data:`~surffin.simulate.validation.VALIDATION`)
-instead, written in its own format, units and poses unless those options are given.
+instead, written in its own format, units, poses and imperfections unless those options
+are given. ``--imperfections NAMES`` renders a real camera's imperfections, named as in
+:data:`~surffin.simulate.imperfections.STANDARD` and separated by commas (``all``,
+``pose,mixed``, ...; ``none`` for an ideal camera).
 
 Kept free of heavy imports, so that building the ``surffin`` parser stays cheap;
 the simulator itself is imported when the command runs.
@@ -14,6 +17,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import replace
 
+from surffin.simulate.imperfections import STANDARD, Imperfections, named_imperfections
 from surffin.simulate.presets import PRESETS
 from surffin.simulate.validation import FORMATS, UNITS, VALIDATION, Validation
 
@@ -39,6 +43,20 @@ def cli_parser(parser: argparse.ArgumentParser) -> None:
         "--no-poses", dest="poses", action="store_false", default=None, help="do not write camera poses"
     )
     parser.add_argument("--truth", default=None, help="folder of the truth stores (default: <directory>-truth)")
+    parser.add_argument(
+        "--imperfections",
+        type=_imperfections,
+        metavar="NAMES",
+        help=f"a real camera's imperfections, comma-separated, of: {', '.join(STANDARD)} (default: none)",
+    )
+
+
+def _imperfections(names: str) -> Imperfections:
+    """Parse ``--imperfections``: names of :data:`STANDARD` separated by commas."""
+    try:
+        return named_imperfections(names)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def _campaign(args: argparse.Namespace) -> Validation:
@@ -47,7 +65,8 @@ def _campaign(args: argparse.Namespace) -> Validation:
         chosen = VALIDATION[args.validation]
     else:
         chosen = Validation(PRESETS[args.preset or "paper"])
-    given = {key: getattr(args, key) for key in ("fmt", "units", "poses") if getattr(args, key) is not None}
+    options = ("fmt", "units", "poses", "imperfections")
+    given = {key: getattr(args, key) for key in options if getattr(args, key) is not None}
     return replace(chosen, **given)
 
 
@@ -67,6 +86,7 @@ def cli_run(args: argparse.Namespace) -> int:
         units=campaign.units,
         poses=campaign.poses,
         truth=args.truth,
+        imperfections=campaign.imperfections,
     )
     print(path)
     return 0

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from surffin.simulate.camera import PinholeCamera
+from surffin.simulate.imperfections import Imperfections, mix_edges, systematic_factor
 from surffin.simulate.scene import Geometry
 
 if TYPE_CHECKING:
@@ -198,7 +199,11 @@ def _growing(level: float, cap: float, reference: float, signal: np.ndarray) -> 
 
 
 def observe(
-    geometry: Geometry, instrument: Instrument, preset: Preset, rng: np.random.Generator
+    geometry: Geometry,
+    instrument: Instrument,
+    preset: Preset,
+    rng: np.random.Generator,
+    imperfections: Imperfections | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """One noisy acquisition of what a camera sees.
 
@@ -211,6 +216,11 @@ def observe(
     made whatever the noise levels, so variants of a preset differing only in
     noise share dropouts and noise patterns.
 
+    The imperfections, when asked, act in the camera's order: the residual
+    systematics scale the noise-free signal, mixed pixels blend it and the
+    range at depth edges (their draws follow the noise's, which stay the
+    same), the noise is added, and the intensity clips at the saturation.
+
     Parameters
     ----------
     geometry : Geometry
@@ -221,6 +231,8 @@ def observe(
         at random), ``min_intensity`` (counts) and ``max_aoi`` (degrees).
     rng : Generator
         The view's own random stream.
+    imperfections : Imperfections, optional
+        Its ``systematics``, ``mixed_pixels`` and ``saturation``; default none.
 
     Returns
     -------
@@ -233,11 +245,19 @@ def observe(
     intensity_draw = rng.standard_normal(shape)
     range_draw = rng.standard_normal(shape)
     kept = rng.random(shape) >= preset.dropout
+    imperfections = imperfections or Imperfections()
     signal = instrument.intensity(geometry.distance, geometry.aoi, scattering(geometry.aoi, geometry.R0, geometry.n))
+    distance = geometry.distance
+    if imperfections.systematics:
+        signal = signal * systematic_factor(distance, geometry.aoi, imperfections.systematics)
+    if imperfections.mixed_pixels:
+        distance, signal = mix_edges(distance, signal, geometry.face, rng)
     relative = _growing(preset.intensity_noise, preset.intensity_noise_max, preset.noise_reference, signal)
     intensity = signal + np.hypot(relative * signal, preset.intensity_floor) * intensity_draw
+    if imperfections.saturation is not None:
+        intensity = np.minimum(intensity, imperfections.saturation)
     depth_sigma = _growing(preset.depth_noise, preset.depth_noise_max, preset.noise_reference, signal)
-    distance = geometry.distance + depth_sigma * range_draw
+    distance = distance + depth_sigma * range_draw
     valid = (
         (geometry.face >= 0)
         & kept

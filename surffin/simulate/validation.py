@@ -15,9 +15,11 @@ a floor of 5 counts, and range noise 0.9 mm at 1500 counts growing as
 nor its roughness relation goes in; the specimens carry no roughness.
 
 Every campaign uses the paper's camera (640 x 480, fx 565, fy 579) and no
-repeat calibration set. ``benchmarks/bench_validation.py`` renders them at
-several seeds and scores the method against their truth; ``surffin simulate
---validation NAME`` renders one.
+repeat calibration set. The campaigns of :data:`IMPERFECT` are ``val-plaster``
+seen by a real camera: each of its imperfections alone, all together, and raw
+files without poses or intrinsics (:mod:`~surffin.simulate.imperfections`).
+``benchmarks/bench_validation.py`` renders them at several seeds and scores the
+method against their truth; ``surffin simulate --validation NAME`` renders one.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from surffin.simulate.camera import PinholeCamera
+from surffin.simulate.imperfections import Imperfections, named_imperfections
 from surffin.simulate.presets import (
     Preset,
     SceneLayout,
@@ -36,7 +39,7 @@ from surffin.simulate.presets import (
     class_material,
 )
 
-__all__ = ["FORMATS", "UNITS", "VALIDATION", "Validation"]
+__all__ = ["FORMATS", "IMPERFECT", "UNITS", "VALIDATION", "Validation"]
 
 #: Values of ``fmt``: one view file form for all views, or ``mixed`` (npz, ply, raw in turn).
 FORMATS = ("npz", "ply", "raw", "mixed")
@@ -83,12 +86,15 @@ class Validation:
         Unit of xyz in npz and ply files.
     poses : bool
         Write the camera poses (npz: inside, ply and raw: sidecars).
+    imperfections : Imperfections
+        The real camera's imperfections rendered; default none.
     """
 
     preset: Preset
     fmt: str = "npz"
     units: str = "m"
     poses: bool = True
+    imperfections: Imperfections = Imperfections()
 
 
 def _specimens(kind: str, table: tuple) -> tuple[Specimen, ...]:
@@ -159,8 +165,28 @@ def _other_specimens() -> Preset:
     return replace(plaster, name="val-other-specimens", scenes=(scene,))
 
 
+# Imperfect val-plaster campaigns: name -> (standard imperfections, fmt, units, poses).
+_IMPERFECT = {
+    "val-distortion": ("unknown-distortion", "npz", "m", True),
+    "val-known-distortion": ("distortion", "npz", "m", True),
+    "val-pose-error": ("pose", "npz", "m", True),
+    "val-mixed-pixels": ("mixed", "npz", "m", True),
+    "val-saturation": ("saturation", "npz", "m", True),
+    "val-systematics": ("systematics", "npz", "m", True),
+    "val-all": ("all", "npz", "m", True),
+    "val-signed-raw": ("signed-raw,settings", "raw", "mm", True),
+    "val-bare-raw": ("no-intrinsics", "raw", "mm", False),
+}
+#: Names of the validation campaigns that render a real camera's imperfections.
+IMPERFECT = tuple(_IMPERFECT)
+
+
 def _campaigns() -> dict[str, Validation]:
     plaster = _plaster()
+    imperfect = {
+        name: Validation(replace(plaster, name=name), fmt, units, poses, named_imperfections(names))
+        for name, (names, fmt, units, poses) in _IMPERFECT.items()
+    }
     return {
         "val-plaster": Validation(plaster),
         "val-concrete": Validation(_concrete(), fmt="ply", units="mm"),
@@ -170,6 +196,7 @@ def _campaigns() -> dict[str, Validation]:
             replace(plaster, name="val-far", scene_distance=0.75, scene_tilts=(9.0, 17.0, 27.0, 36.0, 46.0))
         ),
         "val-raw": Validation(replace(plaster, name="val-raw"), fmt="raw", units="mm"),
+        **imperfect,
     }
 
 
@@ -188,4 +215,12 @@ def _campaigns() -> dict[str, Validation]:
 #:   reference view, files mixed npz/ply/raw.
 #: - ``val-far``: val-plaster with the scene at 0.75 m and angles of 9-46 deg.
 #: - ``val-raw``: val-plaster as Helios raw buffers (mm).
+#: - :data:`IMPERFECT`, val-plaster through a real camera
+#:   (:data:`~surffin.simulate.imperfections.STANDARD`): ``val-distortion`` (k1 -0.12,
+#:   k2 0.05, campaign.yaml giving the pinhole intrinsics only), ``val-known-distortion``
+#:   (the distortion given), ``val-pose-error`` (recorded poses 1 mm and 0.2 deg off),
+#:   ``val-mixed-pixels``, ``val-saturation`` (2000 counts, given), ``val-systematics``
+#:   (3 % outside eq. 5), ``val-all`` (the distortion unknown, the pose error, mixed pixels
+#:   and the systematics), ``val-signed-raw`` (Coord3D_ABCY16s with settings sidecars and
+#:   camera.match_settings) and ``val-bare-raw`` (raw files without poses or intrinsics).
 VALIDATION: dict[str, Validation] = _campaigns()
