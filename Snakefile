@@ -18,6 +18,17 @@ include: "workflow/rules/sensitivity.smk"
 include: "workflow/rules/reproduction.smk"
 
 
+# snakemake's job rate limiter (--max-jobs-per-timespan, 100/1s by default) throttles
+# submissions to a cluster. Run locally it costs much and limits nothing: every scheduling
+# round arms one more 1 s timer whose round arms the next, so each finished job adds a chain
+# of rounds, each stat-ing the inputs of every ready job. On a 48-specimen campaign that was 99
+# of snakemake's CPU-s against 23 without it (docs/performance.md). A local run turns it off.
+onstart:
+    if workflow.local_exec and hasattr(getattr(workflow, "scheduler", None), "job_rate_limiter"):
+        workflow.scheduler.job_rate_limiter = None
+        logger.info("surffin: local run, snakemake's job rate limiter is off")
+
+
 rule all:
     default_target: True
     input:

@@ -132,6 +132,13 @@ def test_every_store_follows_the_contract(done, tmp_path):
 
 
 @pytest.mark.slow  # a full snakemake run of the tiny campaign
+def test_local_run_turns_off_the_job_rate_limiter(done):
+    # its timers multiply scheduling rounds with every finished job (Snakefile, onstart)
+    logs = (done / ".snakemake" / "log").glob("*.snakemake.log")
+    assert any("job rate limiter is off" in log.read_text() for log in logs)
+
+
+@pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_nothing_left_after_a_complete_run(done, planned_jobs):
     assert planned_jobs(done) == {}
 
