@@ -33,8 +33,12 @@ def feature_statistics(ds: xr.Dataset) -> dict:
 
 
 def features_region(spec: Mapping) -> xr.Dataset:
-    """Open the features store of ``{"store", "roi"}``, lazily, cut to its roi when it has one."""
-    ds = open_store(spec["store"], stage="features")
+    """Open the features store of ``{"store", "roi"}``, lazily, cut to its roi when it has one.
+
+    Opened without dask: its variables are read whole or cut, and one store's worth of dask
+    chunking and graph costs more than reading it.
+    """
+    ds = open_store(spec["store"], stage="features", chunks=None)
     roi = Roi.from_mapping(spec["roi"])
     return ds if roi is None else select_roi(ds, roi)
 

@@ -671,10 +671,13 @@ def select_roi(obj: xr.DataArray | xr.Dataset, roi: Roi) -> xr.DataArray | xr.Da
     index = {}
     for dim, (start, stop) in (("y", roi.y), ("x", roi.x)):
         coord = obj[dim].values
-        index[dim] = np.flatnonzero((coord >= start) & (coord < stop))
-        if index[dim].size == 0:
+        inside = np.flatnonzero((coord >= start) & (coord < stop))
+        if inside.size == 0:
             span = f"{coord.min()}..{coord.max()}" if coord.size else "empty"
             raise ValueError(f"roi {roi} holds no pixel of the grid ({dim} = {span})")
+        # a run of positions is a slice: on dask arrays a slice is a view, a list of positions a shuffle
+        contiguous = inside[-1] - inside[0] + 1 == inside.size
+        index[dim] = slice(inside[0], inside[-1] + 1) if contiguous else inside
     return obj.isel(index)
 
 

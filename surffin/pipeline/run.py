@@ -201,7 +201,11 @@ def run_training(
 
     with logging_to(log_path):
         items = {
-            name: (open_store(spec["store"], stage="features"), spec["class"], Roi.from_mapping(spec["roi"]))
+            name: (
+                open_store(spec["store"], stage="features", chunks=None),
+                spec["class"],
+                Roi.from_mapping(spec["roi"]),
+            )
             for name, spec in specimens.items()
         }
         ds = training_set(items, max_per_class=max_per_class)
