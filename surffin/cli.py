@@ -25,6 +25,11 @@ def _check(args: argparse.Namespace) -> int:
     for item in camp.items.values():
         label = f"class {item.cls}" if item.cls else "scene"
         print(f"  {item.kind} {item.name} ({label}): {len(item.views)} views, reference {item.reference}")
+    if camp.scenes and not camp.specimens:
+        print(
+            "  note: scenes but no specimens: the workflow runs it only with extra_training, the training.zarr "
+            "stores of other campaigns (--config extra_training=[...]) to classify the scenes"
+        )
     return 0
 
 

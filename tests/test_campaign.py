@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import yaml
 
+from surffin.cli import main
 from surffin.errors import CampaignError
 from surffin.grid import Roi
 from surffin.io.campaign import Camera, read_campaign, read_truth
@@ -550,8 +551,10 @@ def test_roi():
 # --- a campaign the workflow refuses -----------------------------------------------------------------
 
 
-def test_scenes_without_specimens_or_extra_training_are_refused_before_any_job(campaign, tmp_path):
+def test_scenes_without_specimens_or_extra_training_are_refused_before_any_job(campaign, tmp_path, capsys):
     root, doc = campaign
+    write_yaml(root, doc)
+    assert main(["check", str(root)]) == 0 and "no specimens" not in capsys.readouterr().out
     del doc["specimens"]
     write_yaml(root, doc)
     config = {**read_config(), "campaign": str(root), "processed": str(tmp_path / "out")}
@@ -562,3 +565,7 @@ def test_scenes_without_specimens_or_extra_training_are_refused_before_any_job(c
     assert "nothing to train the classifier of the scenes (T1) on" in message and "extra_training" in message
     assert Plan.read(root, {**config, "extra_training": ["other/training.zarr"]}).campaign.specimens == {}
     assert not (tmp_path / "out").exists()
+    # surffin check validates the campaign alone, and says what the workflow will need
+    assert main(["check", str(root)]) == 0 and "no specimens: the workflow runs it only with extra_training" in (
+        capsys.readouterr().out
+    )
