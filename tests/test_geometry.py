@@ -760,9 +760,15 @@ def test_aoi_stage_drops_mixed_pixels_and_counts_them():
         dims=("term", "y", "x"),
         coords={"term": list(TERMS), "y": ingest.y, "x": ingest.x},
     )
-    reflectance = reflectance_stage(ingest, ds, xr.Dataset({"coef": coef}, attrs={"scale_k": 1.0}))["reflectance"]
+    noise_model = {"noise_variance": ("bin", [4.0, 9.0]), "noise_intensity": ("bin", [100.0, 1000.0])}
+    calibration = xr.Dataset({"coef": coef, **noise_model}, attrs={"scale_k": 1.0})
+    out = reflectance_stage(ingest, ds, calibration)
+    reflectance = out["reflectance"]
     assert reflectance.where(flagged).isnull().all()
     assert reflectance.notnull().sum() == ds["aoi"].notnull().sum()
+    # its noise too: exactly where the reflectance is, though the mixed pixels are valid
+    assert ingest["valid"].where(flagged, False).any()
+    np.testing.assert_array_equal(out["reflectance_noise"].isnull(), reflectance.isnull())
 
 
 def test_tiny_preset_has_almost_no_mixed_pixels(tiny_campaign):

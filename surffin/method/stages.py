@@ -96,7 +96,8 @@ def reflectance_stage(ingest: xr.Dataset, aoi: xr.Dataset, calibration: xr.Datas
     r = reflectance(ingest["intensity"], aoi["distance"], aoi["aoi"], calibration["coef"], calibration.attrs["scale_k"])
     ds = xr.Dataset({"reflectance": r.where(ingest["valid"])}, attrs=_item_attrs(ingest))
     if "noise_variance" in calibration:
-        ds["reflectance_noise"] = relative_noise(ingest["intensity"], calibration).where(ingest["valid"])
+        # where the reflectance is: not on invalid pixels, nor on mixed ones (no AOI, no distance)
+        ds["reflectance_noise"] = relative_noise(ingest["intensity"], calibration).where(ds["reflectance"].notnull())
     return _single(ds)
 
 

@@ -65,7 +65,7 @@ STAGES = {
         Stage("calibration", calibrate, ("views",), "calibration.zarr", 5),
         Stage("ingest", ingest_item, ("views",), "ingest/{item}.zarr", 3),
         _chain("aoi", 4),
-        _chain("reflectance", 3),
+        _chain("reflectance", 4),
         _chain("registration", 3),
         _chain("features", 5),
         Stage("training", training_set, ("features",), "training.zarr", 4),
