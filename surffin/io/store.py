@@ -170,10 +170,19 @@ def _chunking(ds: xr.Dataset, chunks: Mapping[str, int]) -> dict[str, int]:
     return {dim: size for dim, size in wanted.items() if dim in ds.dims}
 
 
-def _encoding(ds: xr.Dataset) -> dict[str, dict]:
+def _encoding(ds: xr.Dataset, chunking: Mapping[str, int] | None = None) -> dict[str, dict]:
+    """Each variable's zarr encoding; with ``chunking``, its chunks too (those ``Dataset.chunk`` would give)."""
     # Noisy floats gain little from compression and write 2-4x slower with it
     # (NUMERICS.md); masks and labels compress well and keep zarr's default.
-    return {name: {"compressors": None} for name, var in ds.variables.items() if np.issubdtype(var.dtype, np.floating)}
+    encoding = {
+        name: {"compressors": None} for name, var in ds.variables.items() if np.issubdtype(var.dtype, np.floating)
+    }
+    for name, var in ds.variables.items() if chunking is not None else ():
+        if name not in ds.indexes:
+            sizes = {dim: chunking.get(dim, -1) for dim in var.dims}
+            chunks = tuple(var.sizes[dim] if size == -1 else min(size, var.sizes[dim]) for dim, size in sizes.items())
+            encoding.setdefault(name, {})["chunks"] = chunks
+    return encoding
 
 
 def _strings_as_objects(ds: xr.Dataset) -> xr.Dataset:
@@ -213,7 +222,11 @@ def write_store(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     clean_leftovers(path)
-    ds = ds.drop_encoding().chunk(_chunking(ds, DEFAULT_CHUNKS if chunks is None else chunks))
+    chunking = _chunking(ds, DEFAULT_CHUNKS if chunks is None else chunks)
+    # A Dataset in memory is written as it is, in the stores' chunks: through dask it would cost a
+    # graph per write for nothing to compute.
+    in_memory = all(var.chunks is None for var in ds.variables.values())
+    ds = ds.drop_encoding() if in_memory else ds.drop_encoding().chunk(chunking)
     ds = _strings_as_objects(ds).copy(deep=False)
     ds.attrs = encode_attrs(ds.attrs)
     for variable in ds.variables.values():
@@ -223,7 +236,12 @@ def write_store(
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
             ds.to_zarr(
-                partial, mode="w-", zarr_format=3, consolidated=True, encoding=_encoding(ds), compute=False
+                partial,
+                mode="w-",
+                zarr_format=3,
+                consolidated=True,
+                encoding=_encoding(ds, chunking if in_memory else None),
+                compute=False,
             ).compute(scheduler=scheduler)
         if path.exists():
             retired = path.parent / f".{path.name}{_RETIRED}{uuid.uuid4().hex[:12]}"

@@ -21,7 +21,7 @@ from dask.local import get_sync
 
 from surffin.grid import Roi
 from surffin.io.files import write_json
-from surffin.io.store import open_store, provenance, write_store
+from surffin.io.store import DEFAULT_CHUNKS, open_store, provenance, write_store
 from surffin.method.stages import roughness_stage
 from surffin.pipeline.jobs import dask_scheduler, logging_to
 from surffin.pipeline.table import STAGES, stage_of
@@ -91,6 +91,22 @@ def run_ingest(
         return path
 
 
+def _open_inputs(stores: Mapping[str, str | os.PathLike], chunks: Mapping[str, int] | None) -> dict:
+    """Open a stage's input stores: into memory when the item's grid fits in one chunk, else as dask arrays.
+
+    An item no larger than one chunk is one task per array, which dask neither parallelises nor
+    bounds in memory, and its graphs cost about a tenth of the chain's CPU (docs/performance.md);
+    a larger one keeps its chunks, so that the job's memory follows the chunks, not the item. The
+    calibration covers the whole sensor, not the item's crop, and does not decide.
+    """
+    limits = {**DEFAULT_CHUNKS, **(chunks or {})}
+    opened = {name: open_store(path, chunks=None) for name, path in stores.items()}
+    items = [ds for name, ds in opened.items() if name != "calibration"]
+    if all(ds.sizes.get(dim, 1) <= limits[dim] for ds in items for dim in ("y", "x")):
+        return {name: ds.load() for name, ds in opened.items()}
+    return {name: open_store(path) for name, path in stores.items()}
+
+
 def run_stage(
     function: Callable,
     output: str | os.PathLike,
@@ -136,7 +152,7 @@ def run_stage(
     params = dict(params or {})
     with logging_to(log_path), dask_scheduler(scheduler, threads):
         start = time.perf_counter()
-        inputs = {name: open_store(path) for name, path in stores.items()}
+        inputs = _open_inputs(stores, chunks)
         log.info("%s: inputs %s, parameters %s", stage.name, {k: str(v) for k, v in stores.items()}, params)
         ds = function(**inputs, **params)
         ds.attrs = {
