@@ -5,6 +5,7 @@ import shutil
 from pathlib import Path
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 import pytest
 import xarray as xr
@@ -17,6 +18,7 @@ from surffin.io.campaign import read_campaign
 from surffin.io.ingest import build_cube, ingest_item
 from surffin.io.store import open_store, write_store
 from surffin.io.viewfile import View
+from surffin.method.camera_model import CameraModel, fit_camera_model, model_residual
 from surffin.method.registration import register, registration_error, registration_maps, warp
 from surffin.method.stages import registration_stage
 from surffin.simulate import simulate_campaign
@@ -413,6 +415,191 @@ def test_homography_stage_takes_no_refinement(planar):
     registered = registration_stage(ingest, *stage_inputs(ingest), method="homography", refine=True)
     assert registered.attrs["method"] == "homography"
     assert "correction" not in registered.attrs["diagnostics"]["v01"]
+
+
+# the camera model: lens distortion and its estimate from the clouds ---------------------------
+
+LENSES = {
+    "pinhole": (),
+    "4 terms": (-0.12, 0.05, 0.001, -0.002),
+    "5 terms": (-0.25, 0.12, 0.001, -0.002, -0.03),
+    "rational": (-0.2, 0.1, 0.001, -0.002, -0.02, 0.01, 0.02, 0.005),
+}
+K = np.array([[565.0, 0.0, 321.0], [0.0, 579.0, 236.0], [0.0, 0.0, 1.0]])
+
+
+@pytest.mark.parametrize("distortion", LENSES.values(), ids=LENSES.keys())
+def test_projection_and_its_derivative_agree_with_opencv(distortion):
+    rng = np.random.default_rng(4)
+    points = np.column_stack([rng.uniform(-0.25, 0.25, 500), rng.uniform(-0.2, 0.2, 500), rng.uniform(0.4, 0.9, 500)])
+    camera = CameraModel.from_intrinsics({"fx": 565.0, "fy": 579.0, "cx": 321.0, "cy": 236.0, "distortion": distortion})
+    # at rvec = tvec = 0, OpenCV's derivative by the translation is the one by the point
+    image, jacobian = cv2.projectPoints(points, np.zeros(3), np.zeros(3), K, np.array(distortion, dtype=float))
+    col, row = camera.project(points, origin=(10, 20))
+    np.testing.assert_allclose(col + 20, image[:, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(row + 10, image[:, 0, 1], atol=1e-9)
+    np.testing.assert_allclose(camera.jacobian(points), jacobian[:, 3:6].reshape(-1, 2, 3), rtol=1e-9, atol=1e-9)
+
+
+def test_projection_is_undefined_behind_the_camera_and_beyond_the_lens_fold():
+    camera = CameraModel(100.0, 100.0, 50.0, 40.0, (-0.3, 0.0, 0.0, 0.0))
+    # r (1 + k1 r^2) grows up to r^2 = -1 / (3 k1)
+    assert camera.fold() == pytest.approx(1.0 / 0.9, abs=1e-3)
+    r2 = np.array([0.5, 1.0, 1.2, 2.0])
+    col, row = camera.project(np.stack([np.sqrt(r2), np.zeros(4), np.ones(4)], axis=-1))
+    np.testing.assert_array_equal(np.isnan(col), [False, False, True, True])
+    col, _ = camera.project(np.array([[0.1, 0.1, -1.0], [0.1, 0.1, 0.0], [np.nan, 0.0, 1.0]]))
+    assert np.isnan(col).all()
+
+
+def lens_cloud(pose, distortion, camera=CAMERA, crop=CROP):
+    """A view of the world plane Z = 0 through a lens: each pixel's point lies on its ray (cv2.undistortPoints)."""
+    rows, cols = np.mgrid[crop.slices]
+    pixels = np.stack([cols, rows], axis=-1).reshape(-1, 1, 2).astype(np.float64)
+    matrix = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+    normalised = cv2.undistortPoints(pixels, matrix, np.array(distortion), criteria=criteria).reshape(*rows.shape, 2)
+    rays = np.concatenate([normalised, np.ones((*rows.shape, 1))], axis=-1)
+    along = -pose[2, 3] / (rays @ pose[2, :3])  # camera centre + along * (R ray) on Z = 0
+    return rays * along[..., None], matrix
+
+
+@pytest.fixture(scope="module")
+def lens():
+    """Two views of a wall through a distorted lens, and the truth of their map by OpenCV."""
+    distortion = LENSES["5 terms"]
+    poses = [look_at_pose((0.0, 0.0, 0.0), 0.4, np.deg2rad(t), a, r) for t, a, r in ((0, 0, 0), (25, 1, 0.05))]
+    clouds = []
+    for pose in poses:
+        xyz, matrix = lens_cloud(pose, distortion)
+        clouds.append(xyz)
+    full = np.full((CAMERA.height, CAMERA.width, 3), np.nan)
+    views = []
+    for index, (pose, xyz) in enumerate(zip(poses, clouds)):
+        grid = full.copy()
+        grid[CROP.slices] = xyz
+        valid = np.isfinite(grid[..., 0])
+        views.append(View(Path(f"v{index:02d}.npz"), grid, np.where(valid, 500.0, 0.0).astype(np.float32), valid, pose))
+    ingest = build_cube(views, CROP)
+    intrinsics = {**CAMERA.intrinsics(), "distortion": distortion}
+    ingest.attrs = {"item": "lens", "reference_view": "v00", "camera": {"intrinsics": intrinsics}}
+    transform = np.linalg.solve(poses[1], poses[0])
+    local = clouds[0] @ transform[:3, :3].T + transform[:3, 3]
+    image, _ = cv2.projectPoints(local.reshape(-1, 3), np.zeros(3), np.zeros(3), matrix, np.array(distortion))
+    truth = image.reshape(*local.shape[:2], 2)
+    inside = (truth[..., 0] >= CROP.x[0]) & (truth[..., 0] <= CROP.x[1] - 1)
+    inside &= (truth[..., 1] >= CROP.y[0]) & (truth[..., 1] <= CROP.y[1] - 1)
+    return ingest, np.where(inside[..., None], truth, np.nan), distortion
+
+
+def lens_error(maps, truth):
+    """Distance (pixels) of view v01's map from the truth; NaN where either is NaN."""
+    view = maps.sel(view="v01")
+    return np.hypot(view["map_x"].values - truth[..., 0], view["map_y"].values - truth[..., 1])
+
+
+def test_poses_project_through_the_lens(lens):
+    ingest, truth, distortion = lens
+    maps = registration_maps(ingest, method="poses", refine=False, smooth=1)
+    error = lens_error(maps, truth)
+    assert np.isfinite(error).mean() > 0.6 and np.isfinite(error).sum() == np.isfinite(truth[..., 0]).sum()
+    assert np.nanmax(error) < 2e-3
+    described = maps.attrs["camera_model"]
+    assert described["source"] == "given" and described["distortion"] == list(distortion)
+    assert described["residual_px"] < 1e-3
+    # the refinement associates points through the lens too: it leaves the true poses where they are
+    refined = registration_maps(ingest, method="poses", smooth=1)
+    assert np.nanmax(lens_error(refined, truth)) < 0.01
+    assert refined.attrs["diagnostics"]["v01"]["correction_mm"] < 0.01
+    # the intrinsics without their distortion miss the clouds' pixels by up to 3.3 px: the lens is fitted to the clouds
+    pinhole = ingest.assign_attrs(camera={"intrinsics": CAMERA.intrinsics()})
+    maps = registration_maps(pinhole, method="poses", refine=False, smooth=1)
+    assert np.nanmax(lens_error(maps, truth)) < 0.01
+    described = maps.attrs["camera_model"]
+    assert described["source"] == "estimated" and described["given_residual_px"] > 1.0
+
+
+def test_poses_without_intrinsics_estimate_the_lens_from_the_clouds(lens):
+    ingest, truth, distortion = lens
+    maps = registration_maps(ingest.assign_attrs(camera={}), method="poses", refine=False, smooth=1)
+    assert "given_residual_px" not in maps.attrs["camera_model"]
+    assert np.nanmax(lens_error(maps, truth)) < 0.01
+    described = maps.attrs["camera_model"]
+    assert described["source"] == "estimated" and described["residual_px"] < 1e-3
+    for key in ("fx", "fy", "cx", "cy"):
+        assert described[key] == pytest.approx(getattr(CAMERA, key), rel=1e-4)
+    np.testing.assert_allclose(described["distortion"], distortion, atol=1e-3)
+    json.dumps(maps.attrs)
+
+
+def test_camera_model_fitted_to_an_organized_cloud():
+    distortion = LENSES["5 terms"]
+    pose = look_at_pose((0.0, 0.0, 0.0), 0.5, np.deg2rad(20), 0.3)
+    crop = Roi((80, 400), (80, 560))
+    xyz, _ = lens_cloud(pose, distortion, camera=PinholeCamera(640, 480, 565.0, 579.0), crop=crop)
+    xyz[100:150, 200:260] = np.nan
+    columns, rows = np.arange(*crop.x), np.arange(*crop.y)
+    camera, residual = fit_camera_model(xyz[None].astype(np.float32), columns, rows)
+    assert residual < 1e-3
+    assert camera.fx == pytest.approx(565.0, rel=1e-5) and camera.fy == pytest.approx(579.0, rel=1e-5)
+    assert camera.cx == pytest.approx(319.5, abs=1e-3) and camera.cy == pytest.approx(239.5, abs=1e-3)
+    np.testing.assert_allclose(camera.distortion, distortion, atol=1e-4)
+    truth = CameraModel(565.0, 579.0, 319.5, 239.5, distortion)
+    assert model_residual(truth, xyz, columns, rows) < 1e-6
+    assert model_residual(CameraModel(565.0, 579.0, 319.5, 239.5), xyz, columns, rows) > 5.0
+    with pytest.raises(ValueError, match="too few"):
+        fit_camera_model(np.full((1, 4, 5, 3), np.nan), np.arange(5), np.arange(4))
+
+
+# poses estimated from the clouds ---------------------------------------------------------------
+
+
+@pytest.mark.slow  # 3.5-7 s on two busy cores: candidate poses refined at half the paper camera's resolution
+def test_clouds_register_without_poses(robot):
+    true, _, _ = robot
+    ingest = true.ingest
+    by_poses = registration_maps(ingest, method="poses")
+    maps = registration_maps(ingest.drop_vars("pose"))
+    assert maps.attrs["method"] == "clouds"
+    error = map_error(maps, true.truth_x, true.truth_y)
+    apart = np.hypot(maps["map_x"] - by_poses["map_x"], maps["map_y"] - by_poses["map_y"]).values
+    poses = ingest["pose"].values
+    for index in (1, 2):
+        # measured: 0.035 / 0.046 px from the truth, as the recorded poses; < 0.001 px from their maps
+        assert np.nanmedian(error[index]) < 0.1
+        assert np.nanpercentile(apart[index], 95) < 0.01
+        assert np.isfinite(maps["map_x"].values[index]).mean() == pytest.approx(
+            np.isfinite(by_poses["map_x"].values[index]).mean(), abs=0.002
+        )
+        diagnostics = maps.attrs["diagnostics"][f"v{index:02d}"]
+        assert diagnostics["constrained"] == 6 and diagnostics["aligned_with"] in ("v00", "v01")
+        # the estimated pose of the view in the reference camera's frame against the true one
+        residual = np.linalg.solve(np.linalg.solve(poses[0], poses[index]), np.array(diagnostics["pose"]))
+        assert np.linalg.norm(residual[:3, 3]) < 3e-4
+        assert np.rad2deg(Rotation.from_matrix(residual[:3, :3]).magnitude()) < 0.05
+    assert maps.attrs["camera_model"]["given_residual_px"] < 1e-3
+    json.dumps(maps.attrs)
+
+
+def test_clouds_tell_a_symmetric_relief_by_its_texture(stepped):
+    # a square block on a board: the relief alone fits four turns; the texture picks the right one
+    ingest = stepped.ingest.drop_vars("pose")
+    roi = {"y": [30, 90], "x": [40, 120]}  # for the homography only: the stage leaves it out
+    # refine=False: for the recorded poses only; estimated ones are always refined
+    registered = registration_stage(ingest, *stage_inputs(ingest), method="clouds", roi=roi, refine=False)
+    assert registered.attrs["method"] == "clouds" and registered.attrs["camera_model"]["source"] == "estimated"
+    error = map_error(registered, stepped.truth_x, stepped.truth_y)
+    for index in (1, 2):
+        assert registered.attrs["diagnostics"][f"v{index:02d}"]["candidates"] >= 2
+        assert np.nanmedian(error[index]) < 0.1
+        assert np.nanpercentile(error[index], 95) < 0.5
+
+
+def test_clouds_need_relief(planar):
+    with pytest.raises(RegistrationError, match=r"item 'wall', view 'v01'.*dominant plane.*method='homography'"):
+        registration_maps(planar.ingest.drop_vars("pose"), method="clouds")
+    with pytest.raises(TypeError, match="unknown options"):
+        registration_maps(planar.ingest, method="clouds", roi={"y": [0, 10], "x": [0, 10]})
 
 
 # warp ------------------------------------------------------------------------------------------

@@ -8,8 +8,10 @@ scores maps against the synthetic camera's truth. The methods:
 
 - ``"poses"``: the reference pixel's 3-D point (its range averaged over neighbours on the same
   surface: depth noise moves it along the view's epipolar line) goes through the two poses and
-  the pinhole intrinsics onto the view's sensor; a point the view sees something closer than
-  is occluded. Any surface shape. A robot's recorded poses are off by ~1-2 mm and 0.2-0.5 deg,
+  the camera model (:class:`~surffin.method.camera_model.CameraModel`: campaign.yaml's intrinsics
+  with their lens distortion, or without distortion the model fitted to the clouds themselves)
+  onto the view's sensor; a point the view sees something closer than is occluded. Any
+  surface shape. A robot's recorded poses are off by ~1-2 mm and 0.2-0.5 deg,
   several pixels on the sensor, so each view's pose is first refined against the reference
   view (:func:`_refine_pose`: point-to-plane ICP, and direct alignment of the surface texture
   for the motions a plane leaves free), bounded, and its correction reported.
@@ -17,18 +19,26 @@ scores maps against the synthetic camera's truth. The methods:
   test and a robust homography (USAC MAGSAC++); exact for one plane only, as in the paper: on
   a specimen raised from its board it follows the plane with most keypoints unless an ``roi``
   restricts the reference keypoints to the plane wanted.
-- ``"auto"``: poses when every view has one and the camera has intrinsics, else the homography.
+- ``"clouds"``: as ``"poses"``, with each view's pose relative to the reference view estimated
+  from the clouds alone (:func:`_pose_estimator`): the dominant planes fix tilt and distance,
+  the relief over them (a specimen's edges) the turn and shift along the plane, and the
+  refinement (with a broad prior and no bounds) the rest; the surface's texture chooses
+  among the poses a symmetric relief leaves. Needs relief (a plane alone fixes only 3 of
+  the 6 directions of a pose).
+- ``"auto"``: poses when every view has one, else ``"clouds"``, and where that fails the homography.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from functools import cache, partial
 
 import cv2
 import numpy as np
 import xarray as xr
 
 from surffin.errors import RegistrationError
+from surffin.method.camera_model import CameraModel, fit_camera_model, model_residual
 from surffin.method.geometry import plane_normals
 
 __all__ = [
@@ -43,7 +53,7 @@ __all__ = [
 ]
 
 #: Methods of :func:`registration_maps`.
-METHODS = ("auto", "poses", "homography")
+METHODS = ("auto", "poses", "clouds", "homography")
 
 # OpenCV 5 moved AKAZE to opencv-contrib (cv2.xfeatures2d); use it where it is installed.
 _AKAZE = next(
@@ -87,11 +97,26 @@ _REFINE_WINDOW = 15  # pixels: plane-fit window of the reference normals
 _REFINE_CONTRAST = 4.0  # pixels: local normalisation of the texture (wider windows reach across edges: biased)
 _REFINE_LEVELS = (2.0, 1.0)  # pixels: Gaussian blur of the texture, coarse to fine
 _REFINE_ITERATIONS = 10  # Gauss-Newton iterations per level at most
+_ESTIMATE_ITERATIONS = 30  # the same for coarse estimates (method "clouds") none of which converged in fewer
 _REFINE_STEP = 0.01  # pixels: converged when a step of the last level moves the surface by less in the view
 _COARSE = 10.0  # coarser levels stop at this many times the step
 _OBSERVABLE = 3e-3  # point-to-plane information below this share of the largest is dropped (unobservable)
 _CONSTRAINED = 10.0  # directions with less information than this times the prior's are not updated
 _PRIOR = (0.4, 0.002)  # standard deviation of a recorded pose (robot and hand-eye): degrees, metres
+_COARSE_PRIOR = (5.0, 0.01)  # standard deviation of a coarse pose estimate (method "clouds"): degrees, metres
+_MODEL_RESIDUAL = 0.5  # pixels: an estimated camera model fitting the clouds worse is refused
+_PLANE_SAMPLES = 5000  # points (a random subsample) a view's dominant plane is searched on
+_PLANE_TRIALS = 300  # RANSAC trials of the dominant plane
+_PLANE_TOLERANCE = 0.002  # metres: points this close to a plane are on it (range noise ~1-3 mm; relief >= 10 mm)
+_PLANE_FITS = 5  # least-squares fits of the dominant plane to its points at most
+_HEIGHT_CELLS = 256  # side of the height maps (cells) correlated for the coarse pose
+_HEIGHT_SPAN = 0.05  # metres: heights off the plane are clipped to +- this
+_MIN_RELIEF = 0.02  # share of a view's points off its dominant plane (by the tolerance) that method "clouds" needs
+_CELL_SPACING = 2.0  # height map cells span at least this many times the median spacing of neighbouring points
+_EXTENSION = 8.0  # cells: Gaussian scale of the smooth extension of a height map over its empty cells
+_TURN_STEP = 3.0  # degrees: turns about the plane's normal tried, over the whole circle, then refined
+_CANDIDATES = 6  # coarse poses refined at most (the highest peaks of the correlation over the turn)
+_CANDIDATE_SHARE = 0.3  # a peak lower than this share of the highest is no candidate
 _MIN_PAIRS = 50  # fewer point-to-plane pairs: the view is refused
 _MIN_TEXTURE = 300  # fewer texture pairs: that term is left out
 _HUBER = 1.345  # Huber threshold, robust standard deviations
@@ -210,7 +235,7 @@ def _smooth_range(points: np.ndarray, window: int, tolerance: float, relative: f
         return points * (total / count / distance)[..., None]
 
 
-def _project(points: np.ndarray, transform: np.ndarray, intrinsics: Mapping[str, float]):
+def _project(points: np.ndarray, transform: np.ndarray, camera: CameraModel):
     """Sensor positions and ranges of points in another camera.
 
     Parameters
@@ -219,8 +244,8 @@ def _project(points: np.ndarray, transform: np.ndarray, intrinsics: Mapping[str,
         Camera frame of camera A.
     transform : (4, 4) ndarray
         From camera A's frame to camera B's.
-    intrinsics : mapping
-        ``fx``, ``fy``, ``cx``, ``cy`` of camera B, pixels.
+    camera : CameraModel
+        Camera B's.
 
     Returns
     -------
@@ -230,20 +255,7 @@ def _project(points: np.ndarray, transform: np.ndarray, intrinsics: Mapping[str,
         Range of each point from camera B's centre.
     """
     local = points @ transform[:3, :3].T + transform[:3, 3]
-    return *_pinhole(local, intrinsics), np.linalg.norm(local, axis=-1)
-
-
-def _pinhole(local: np.ndarray, intrinsics: Mapping[str, float], origin=(0, 0)) -> tuple[np.ndarray, np.ndarray]:
-    """Column and row of camera-frame points (..., 3) through the pinhole; NaN at or behind the camera or for NaN.
-
-    Positions on a grid whose first pixel is the sensor's ``origin`` (row, col); (0, 0): sensor positions.
-    """
-    depth = local[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        front = depth > 0
-        col = np.where(front, intrinsics["fx"] * local[..., 0] / depth + (intrinsics["cx"] - origin[1]), np.nan)
-        row = np.where(front, intrinsics["fy"] * local[..., 1] / depth + (intrinsics["cy"] - origin[0]), np.nan)
-    return col, row
+    return *camera.project(local), np.linalg.norm(local, axis=-1)
 
 
 def _nearest(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
@@ -254,7 +266,7 @@ def _nearest(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
     return np.where(known, image[r, c], np.nan)
 
 
-def _pose_map(points, transform, intrinsics, view_points, columns, rows, tolerance, relative):
+def _pose_map(points, transform, camera, view_points, columns, rows, tolerance, relative):
     """Map of one view by the poses, with the occlusion test.
 
     Parameters
@@ -263,8 +275,7 @@ def _pose_map(points, transform, intrinsics, view_points, columns, rows, toleran
         Reference pixels' points, reference camera frame (NaN = invalid).
     transform : (4, 4) ndarray
         Reference camera frame to the view's camera frame.
-    intrinsics : mapping
-        Pinhole ``fx``, ``fy``, ``cx``, ``cy``.
+    camera : CameraModel
     view_points : (h, w, 3) ndarray, metres
         The view's own measured points on its cropped grid.
     columns, rows : (w,), (h,) ndarray of int
@@ -282,7 +293,7 @@ def _pose_map(points, transform, intrinsics, view_points, columns, rows, toleran
         ``range_rms`` (metres): rms of measured minus projected range over the
         mapped pixels with a measurement, a check of the poses.
     """
-    col, row, expected = _project(points, transform, intrinsics)
+    col, row, expected = _project(points, transform, camera)
     _outside_to_nan(col, row, columns, rows)
     measured = _nearest(np.linalg.norm(view_points, axis=-1), col - columns[0], row - rows[0])
     residual = measured - expected
@@ -312,7 +323,7 @@ def _twist(transform: np.ndarray) -> np.ndarray:
     return np.concatenate([cv2.Rodrigues(transform[:3, :3])[0].ravel(), transform[:3, 3]])
 
 
-def _point_to_plane(transform, source, target, normals, intrinsics, grid, tolerance, relative):
+def _point_to_plane(transform, source, target, normals, camera, grid, tolerance, relative):
     """Point-to-plane residuals and Jacobian of a view's points against the reference surface.
 
     Projective data association: each source point, moved into the reference
@@ -327,8 +338,7 @@ def _point_to_plane(transform, source, target, normals, intrinsics, grid, tolera
     target, normals : (h, w, 3) ndarray
         Reference points (metres) and unit normals on the reference grid; NaN
         where undefined (invalid, depth edges).
-    intrinsics : mapping
-        Pinhole ``fx``, ``fy``, ``cx``, ``cy``.
+    camera : CameraModel
     grid : (columns, rows)
         Sensor indices of the reference grid.
     tolerance, relative : float
@@ -345,7 +355,7 @@ def _point_to_plane(transform, source, target, normals, intrinsics, grid, tolera
     """
     # np.dot and np.take: ~10x faster than matmul and fancy indexing on (N, 3) arrays
     moved = np.dot(source, transform[:3, :3].T) + transform[:3, 3]
-    col, row = (np.rint(value) for value in _pinhole(moved, intrinsics, (grid[1][0], grid[0][0])))
+    col, row = (np.rint(value) for value in camera.project(moved, (grid[1][0], grid[0][0])))
     height, width = target.shape[:2]
     with np.errstate(invalid="ignore"):
         found = np.flatnonzero((col >= 0) & (col < width) & (row >= 0) & (row < height))
@@ -374,7 +384,7 @@ def _remap(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
     return out.reshape(padded, -1)[:count]
 
 
-def _texture_residuals(transform, points, texture, sampled, intrinsics, origin, tolerance, relative):
+def _texture_residuals(transform, points, texture, sampled, camera, origin, tolerance, relative):
     """Texture residuals and Jacobian of reference pixels against a view (direct image alignment).
 
     Parameters
@@ -388,8 +398,8 @@ def _texture_residuals(transform, points, texture, sampled, intrinsics, origin, 
     sampled : (H, W, 4) ndarray of float32
         The view's texture, its column and row derivatives and its measured
         range (metres), on its own grid (:func:`_sampled`); NaN = missing.
-    intrinsics : mapping
-        Pinhole ``fx``, ``fy``, ``cx``, ``cy``.
+    camera : CameraModel
+        The view's.
     origin : (row, col)
         Sensor position of the view grid's first pixel.
     tolerance, relative : float
@@ -405,18 +415,16 @@ def _texture_residuals(transform, points, texture, sampled, intrinsics, origin, 
         The view's texture at the projected point minus the reference's.
     """
     local = np.dot(points, transform[:3, :3].T) + transform[:3, 3]
-    col, row = (np.nan_to_num(value, nan=-1.0) for value in _pinhole(local, intrinsics, origin))
+    col, row = (np.nan_to_num(value, nan=-1.0) for value in camera.project(local, origin))
     value, d_col, d_row, measured = _remap(sampled, col, row).T
     distance = np.sqrt(np.einsum("ij,ij->i", local, local))
     with np.errstate(invalid="ignore"):
         keep = np.abs(measured - distance) <= np.maximum(tolerance, relative * distance)
     keep &= np.isfinite(value) & np.isfinite(d_col) & np.isfinite(d_row) & np.isfinite(texture)
-    local, d_col, d_row = local[keep], d_col[keep], d_row[keep]
-    # derivative of the texture at the projection with respect to the point (view frame; :func:`_pinhole`)
-    fx, fy, z = intrinsics["fx"], intrinsics["fy"], local[:, 2]
-    gradient = np.stack(
-        [fx * d_col / z, fy * d_row / z, -(fx * d_col * local[:, 0] + fy * d_row * local[:, 1]) / z**2], axis=-1
-    )
+    local = local[keep]
+    # derivative of the texture at the projection with respect to the point (view frame)
+    jacobian = camera.jacobian(local)
+    gradient = d_col[keep, None] * jacobian[:, 0] + d_row[keep, None] * jacobian[:, 1]
     return np.hstack([np.cross(gradient, local), -gradient]), value[keep] - texture[keep]
 
 
@@ -465,9 +473,14 @@ def _sampled(texture: np.ndarray, distance: np.ndarray, sigma: float) -> np.ndar
     return np.ascontiguousarray(np.stack([blurred, d_col, d_row, distance], axis=-1), dtype=np.float32)
 
 
+def _robust_deviation(residual: np.ndarray) -> float:
+    """Return the standard deviation of residuals (M,) from their median absolute deviation; NaN when none."""
+    return _MAD_SCALE * float(np.median(np.abs(residual - np.median(residual)))) if residual.size else float("nan")
+
+
 def _robust_normal_equations(jacobian: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Huber-weighted normal matrix (6, 6) and gradient (6,), residuals scaled by their robust deviation."""
-    scale = max(_MAD_SCALE * float(np.median(np.abs(residual - np.median(residual)))), np.finfo(np.float32).eps)
+    scale = max(_robust_deviation(residual), np.finfo(np.float32).eps)
     size = np.abs(residual) / scale
     weight = np.where(size <= _HUBER, 1.0, _HUBER / np.maximum(size, _HUBER)) / scale**2
     weighted = jacobian * weight[:, None]
@@ -523,7 +536,7 @@ def _regularised_step(matrix, gradient, prior, correction):
     return -spread * (vectors[:, kept] @ (whitened / (values[kept] + 1.0))), int(kept.sum())
 
 
-def _refine_pose(start, geometric, textured, correlation, prior, units, tolerance):
+def _refine_pose(start, geometric, textured, correlation, prior, units, tolerance, iterations):
     """Refine a view's pose against the reference view's: Gauss-Newton, regularised toward the recorded pose.
 
     The unknown is a correction of the view's pose: a twist (rotation vector,
@@ -565,6 +578,8 @@ def _refine_pose(start, geometric, textured, correlation, prior, units, toleranc
     tolerance : float, metres
         Converged when a step of the last level moves the surface by less
         (coarser levels: :data:`_COARSE` times more).
+    iterations : int
+        Per level at most.
 
     Returns
     -------
@@ -572,18 +587,26 @@ def _refine_pose(start, geometric, textured, correlation, prior, units, toleranc
         The refined view-to-reference transform.
     info : dict
         ``iterations`` (in all), ``converged``, and of the last iteration
-        ``pairs`` and ``texture_pairs`` (residuals of each kind) and
-        ``constrained`` (directions updated).
+        ``pairs`` and ``texture_pairs`` (residuals of each kind), their robust
+        standard deviations ``shape_deviation_mm`` and ``texture_deviation``
+        (in the texture's local standard deviations) and ``constrained``
+        (directions updated).
     """
     transform, info, converged = start, {"iterations": 0}, False
     for level in range(len(_REFINE_LEVELS)):
         last = level == len(_REFINE_LEVELS) - 1
-        for _ in range(_REFINE_ITERATIONS):
+        for _ in range(iterations):
             (shape_jacobian, shape_residual), (texture_jacobian, texture_residual) = (
                 geometric(transform),
                 textured(transform, level),
             )
-            info = {**info, "pairs": shape_residual.size, "texture_pairs": texture_residual.size}
+            info = {
+                **info,
+                "pairs": shape_residual.size,
+                "texture_pairs": texture_residual.size,
+                "shape_deviation_mm": 1e3 * _robust_deviation(shape_residual),
+                "texture_deviation": _robust_deviation(texture_residual),
+            }
             if shape_residual.size < _MIN_PAIRS:
                 return transform, {**info, "converged": False, "constrained": 0}
             matrix, gradient = _observable(*_robust_normal_equations(shape_jacobian, shape_residual), units)
@@ -734,9 +757,6 @@ def _options(method: str, options: Mapping, auto: bool) -> dict:
 
 def _poses_usable(ingest: xr.Dataset) -> str | None:
     """Why the poses method cannot run on ``ingest``, or None when it can."""
-    intrinsics = ingest.attrs.get("camera", {}).get("intrinsics")
-    if not intrinsics:
-        return "the camera has no intrinsics (camera.intrinsics in campaign.yaml)"
     if "pose" not in ingest:
         return "no view carries a pose"
     finite = np.isfinite(np.asarray(ingest["pose"].values)).all(axis=(1, 2))
@@ -758,14 +778,211 @@ def _check_poses(poses: np.ndarray, views, item: str) -> None:
             )
 
 
+def _camera_model(ingest: xr.Dataset, xyz: np.ndarray, grid, item: str) -> tuple[CameraModel, dict]:
+    """Return the camera model of the poses methods and its description.
+
+    campaign.yaml's intrinsics when they give the lens distortion; else the
+    model fitted to the clouds (:func:`~surffin.method.camera_model.fit_camera_model`),
+    refused when it misses their pixels by more than :data:`_MODEL_RESIDUAL`.
+    The description: ``source`` (``"given"`` or ``"estimated"``), ``fx``,
+    ``fy``, ``cx``, ``cy``, ``distortion`` and ``residual_px``, the rms
+    distance (pixels) between the pixels of the views' valid points and the
+    model's projections of them (:func:`~surffin.method.camera_model.model_residual`);
+    when intrinsics without distortion were given, ``given_residual_px``: theirs.
+    """
+    intrinsics = ingest.attrs.get("camera", {}).get("intrinsics")
+    if intrinsics and intrinsics.get("distortion"):
+        camera = CameraModel.from_intrinsics(intrinsics)
+        return camera, {"source": "given", **camera.as_dict(), "residual_px": model_residual(camera, xyz, *grid)}
+    try:
+        camera, residual = fit_camera_model(xyz, *grid)
+    except ValueError as error:
+        raise RegistrationError(f"item {item!r}: no camera model: {error}") from None
+    if not residual <= _MODEL_RESIDUAL:
+        raise RegistrationError(
+            f"item {item!r}: the camera model fitted to the views' clouds misses their pixels by {residual:.2f} px "
+            f"rms (at most {_MODEL_RESIDUAL} px): give camera.intrinsics with their distortion in campaign.yaml"
+        )
+    described = {"source": "estimated", **camera.as_dict(), "residual_px": residual}
+    if intrinsics:
+        described["given_residual_px"] = model_residual(CameraModel.from_intrinsics(intrinsics), xyz, *grid)
+    return camera, described
+
+
+def _plane_frame(points: np.ndarray) -> np.ndarray:
+    """Return the frame (4, 4) of the dominant plane of points (N, 3), camera frame, by RANSAC and least squares.
+
+    The plane with most points within :data:`_PLANE_TOLERANCE` (RANSAC), fitted
+    again to its points by least squares until they stay the same (at most
+    :data:`_PLANE_FITS` times).
+
+    Columns: two in-plane axes (the first along the camera's x axis), the
+    normal toward the camera, and the origin where the optical axis meets the
+    plane; it takes plane coordinates (along, across, height) to the camera frame.
+    """
+    rng = np.random.default_rng(0)
+    sample = points[rng.choice(len(points), min(len(points), _PLANE_SAMPLES), replace=False)]
+    first, second, third = (sample[rng.integers(0, len(sample), _PLANE_TRIALS)] for _ in range(3))
+    normals = np.cross(second - first, third - first)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+        counts = np.abs(sample @ normals.T - np.einsum("ij,ij->i", normals, first)) <= _PLANE_TOLERANCE
+    best = int(np.argmax(counts.sum(axis=0)))
+    normal, centroid, inliers = normals[best], first[best], counts[:, best]
+    for _ in range(_PLANE_FITS):
+        centroid = sample[inliers].mean(axis=0)
+        normal = np.linalg.svd(sample[inliers] - centroid, full_matrices=False)[2][2]
+        previous, inliers = inliers, np.abs((sample - centroid) @ normal) <= _PLANE_TOLERANCE
+        if np.array_equal(inliers, previous):
+            break
+    normal = -normal if normal @ centroid > 0 else normal
+    along = np.array([1.0, 0.0, 0.0]) - normal[0] * normal
+    along /= np.linalg.norm(along)
+    frame = np.eye(4)
+    frame[:3, :3] = np.stack([along, np.cross(normal, along), normal], axis=-1)
+    frame[:3, 3] = (normal @ centroid / normal[2]) * np.array([0.0, 0.0, 1.0])
+    return frame
+
+
+def _height_map(points: np.ndarray, frame: np.ndarray, cell: float) -> np.ndarray:
+    """Return the mean height (metres, float32) of points (N, 3) over a plane's square grid of cells; NaN where none.
+
+    Cell ``(row, col)`` spans ``[(col - n / 2) cell, (col + 1 - n / 2) cell)`` along the plane's first
+    axis (:func:`_plane_frame`), ``n`` = :data:`_HEIGHT_CELLS`; heights clipped to +- :data:`_HEIGHT_SPAN`.
+    """
+    local = (points - frame[:3, 3]) @ frame[:3, :3]
+    col, row = (np.floor(local[:, axis] / cell + _HEIGHT_CELLS / 2).astype(np.intp) for axis in (0, 1))
+    inside = (col >= 0) & (col < _HEIGHT_CELLS) & (row >= 0) & (row < _HEIGHT_CELLS)
+    at = row[inside] * _HEIGHT_CELLS + col[inside]
+    height = np.clip(local[inside, 2], -_HEIGHT_SPAN, _HEIGHT_SPAN)
+    total = np.bincount(at, height, _HEIGHT_CELLS**2)
+    count = np.bincount(at, None, _HEIGHT_CELLS**2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (total / count).reshape(_HEIGHT_CELLS, _HEIGHT_CELLS).astype(np.float32)
+
+
+def _extended(image: np.ndarray) -> np.ndarray:
+    """Fill the NaN cells of a height map smoothly from the known ones, and remove the mean (float32).
+
+    A NaN cell takes the Gaussian-weighted mean (:data:`_EXTENSION` cells) of the
+    known cells around it (the median far from any): the edge of the surface a
+    view saw leaves no step, which would correlate with itself between views.
+    """
+    known = np.isfinite(image)
+    weight = cv2.GaussianBlur(known.astype(np.float64), (0, 0), _EXTENSION)
+    total = cv2.GaussianBlur(np.where(known, image, 0.0).astype(np.float64), (0, 0), _EXTENSION)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        around = np.where(weight > 1e-9, total / weight, np.nanmedian(image))
+    out = np.where(known, image, around)
+    return (out - out.mean()).astype(np.float32)
+
+
+def _turned(image: np.ndarray, degrees: float) -> np.ndarray:
+    """Return ``image`` (n, n) turned by ``degrees`` about its centre (content at p goes to R p); 0 outside."""
+    angle = np.deg2rad(degrees)
+    rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    centre = np.full(2, (image.shape[0] - 1) / 2.0)
+    affine = np.hstack([rotation, (centre - rotation @ centre)[:, None]])
+    return cv2.warpAffine(image, affine, image.shape[::-1], flags=cv2.INTER_LINEAR, borderValue=0.0)
+
+
+def _coarse_transforms(reference, view, reference_frame, view_frame, tolerance: float, where: str) -> list:
+    """Estimate the transform from the reference camera's frame to a view's from their clouds alone: candidates.
+
+    Each cloud's dominant plane (:func:`_plane_frame`) fixes its tilt and
+    distance (at least :data:`_MIN_RELIEF` of the points must lie off it);
+    the turn about the plane's normal and the shift along it are those that
+    best superpose the two height maps of the surface over the plane
+    (:func:`_height_map`): phase correlation of the view's map with the
+    reference's turned in steps of :data:`_TURN_STEP` over the whole circle;
+    the peaks of the correlation over the turn (at most :data:`_CANDIDATES`,
+    each at least :data:`_CANDIDATE_SHARE` of the highest: a symmetric surface
+    has several) are refined in a sixth of the step; the shift along the
+    normal is the median height difference.
+
+    Parameters
+    ----------
+    reference, view : (h, w, 3) ndarray, metres
+        The two views' points, each in its camera frame; NaN = invalid.
+    reference_frame, view_frame : (4, 4) ndarray
+        Of their dominant planes (:func:`_plane_frame`).
+    tolerance : float, metres
+        Points within it of a plane are on it.
+    where : str
+        Starts the RegistrationError of a failure.
+
+    Returns
+    -------
+    list of (transform, diagnostics)
+        Highest correlation first: ``transform`` (4, 4) and ``coarse_turn_deg``
+        (about the plane's normal) and ``coarse_response`` (the phase
+        correlation's peak, 0..1).
+    """
+    clouds = [points.reshape(-1, 3) for points in (reference, view)]
+    clouds = [cloud[np.isfinite(cloud).all(axis=-1)] for cloud in clouds]
+    frames = [reference_frame, view_frame]
+    relief = [
+        np.mean(np.abs((cloud - frame[:3, 3]) @ frame[:3, 2]) > tolerance) for cloud, frame in zip(clouds, frames)
+    ]
+    if min(relief) < _MIN_RELIEF:
+        raise RegistrationError(
+            f"{where}: only {100 * min(relief):.1f} % of a view's points lie off its dominant plane by more than "
+            f"tolerance={tolerance} m (at least {100 * _MIN_RELIEF:.0f} %): without relief the clouds do not fix the "
+            f"view's pose; give the views poses (method='poses') or use method='homography'"
+        )
+    spans = [np.percentile(np.abs((cloud - frame[:3, 3]) @ frame[:3, :2]), 99) for cloud, frame in zip(clouds, frames)]
+    # the cells hold a few points each (else the empty ones make a pattern that correlates with itself)
+    spacing = max(
+        np.nanmedian(np.linalg.norm(np.diff(points, axis=axis), axis=-1))
+        for points in (reference, view)
+        for axis in (0, 1)
+    )
+    cell = max(2.0 * max(spans) / _HEIGHT_CELLS, _CELL_SPACING * spacing)
+    maps = [_height_map(cloud, frame, cell) for cloud, frame in zip(clouds, frames)]
+    filled = [_extended(_blurred(image, 1.0)) for image in maps]
+    window = cv2.createHanningWindow(filled[0].shape[::-1], cv2.CV_32F)
+
+    def correlate(degrees: float):
+        # a copy: OpenCV 5's phaseCorrelate multiplies its inputs by the window in place
+        return cv2.phaseCorrelate(_turned(filled[0], degrees), filled[1].copy(), window)
+
+    turns = np.arange(0.0, 360.0, _TURN_STEP)
+    responses = np.array([correlate(degrees)[1] for degrees in turns])
+    peaks = np.flatnonzero((responses >= np.roll(responses, 1)) & (responses >= np.roll(responses, -1)))
+    peaks = peaks[np.argsort(-responses[peaks])]
+    peaks = peaks[responses[peaks] >= _CANDIDATE_SHARE * responses[peaks[0]]][:_CANDIDATES]
+    centres = (np.stack(np.meshgrid(np.arange(_HEIGHT_CELLS), np.arange(_HEIGHT_CELLS)), -1) + 0.5) * cell
+    centres = centres.reshape(-1, 2) - _HEIGHT_CELLS / 2 * cell
+    candidates = []
+    for peak in peaks:
+        turn = max(turns[peak] + np.linspace(-_TURN_STEP, _TURN_STEP, 13), key=lambda degrees: correlate(degrees)[1])
+        (shift_col, shift_row), response = correlate(turn)
+        angle = np.deg2rad(turn)
+        motion = np.eye(4)
+        motion[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+        motion[:2, 3] = cell * np.array([shift_col, shift_row])
+        # the reference's cells moved into the view's plane: the median height difference is the shift along the normal
+        moved = centres @ motion[:2, :2].T + motion[:2, 3]
+        col, row = (np.floor(moved[:, axis] / cell + _HEIGHT_CELLS / 2).astype(np.intp) for axis in (0, 1))
+        inside = (col >= 0) & (col < _HEIGHT_CELLS) & (row >= 0) & (row < _HEIGHT_CELLS)
+        difference = maps[1][row[inside], col[inside]] - maps[0].ravel()[inside]
+        if np.isfinite(difference).any():
+            motion[2, 3] = np.nanmedian(difference)
+            transform = frames[1] @ motion @ np.linalg.inv(frames[0])
+            candidates.append((transform, {"coarse_turn_deg": float(turn % 360.0), "coarse_response": float(response)}))
+    if not candidates:
+        raise RegistrationError(f"{where}: the view's surface does not overlap the reference view's")
+    return candidates
+
+
 def _identity(grid: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Sensor (column, row) of every pixel of a grid given by its columns and rows, float64 (h, w) each."""
     columns, rows = grid
     return tuple(np.meshgrid(columns.astype(np.float64), rows.astype(np.float64)))
 
 
-def _pose_refiner(ingest: xr.Dataset, xyz: np.ndarray, points: np.ndarray, ref: int, grid, opts: dict):
-    """Build the pose refinement of the poses method (:func:`_refine_pose`).
+def _pose_refiner(ingest, xyz, points, ref, grid, opts, camera, recorded):
+    """Build the pose refinement of the poses methods (:func:`_refine_pose`).
 
     Parameters
     ----------
@@ -781,15 +998,22 @@ def _pose_refiner(ingest: xr.Dataset, xyz: np.ndarray, points: np.ndarray, ref: 
         Sensor indices of the grid.
     opts : dict
         The poses method's options.
+    camera : CameraModel
+    recorded : bool
+        The starting poses are recorded ones: a prior toward them (:data:`_PRIOR`)
+        and the bounds ``max_translation`` and ``max_rotation`` of the
+        correction. Else they are the coarse estimates of
+        :func:`_coarse_transforms`: a broad prior (:data:`_COARSE_PRIOR`) and
+        no bounds.
 
     Returns
     -------
     callable
-        ``refine(index, transform, where)``: the reference-to-view ``transform``
-        (4, 4) of view ``index`` refined, and its diagnostics; RegistrationError
+        ``refine(index, transform, where, iterations=10)``: the
+        reference-to-view ``transform`` (4, 4) of view ``index`` refined (at
+        most ``iterations`` per level), and its diagnostics; RegistrationError
         starting with ``where`` when the refinement fails or moves it too far.
     """
-    intrinsics = ingest.attrs["camera"]["intrinsics"]
     intensity = np.asarray(ingest["intensity"].values)
     valid = np.asarray(ingest["valid"].values, dtype=bool)
     tolerances = opts["tolerance"], opts["relative"]
@@ -812,11 +1036,13 @@ def _pose_refiner(ingest: xr.Dataset, xyz: np.ndarray, points: np.ndarray, ref: 
     ]
     origin = (grid[1][0], grid[0][0])
     correlation = [_correlated(blur, stride) for blur in _REFINE_LEVELS]
-    prior = 1.0 / np.repeat([np.deg2rad(_PRIOR[0]), _PRIOR[1]], 3) ** 2
+    spread = _PRIOR if recorded else _COARSE_PRIOR
+    prior = 1.0 / np.repeat([np.deg2rad(spread[0]), spread[1]], 3) ** 2
 
-    def refine(index: int, relative: np.ndarray, where: str):
+    @cache
+    def view_data(index: int):
+        """Return a view's sampled points, texture stacks (:func:`_sampled`) per level and median range."""
         source = xyz[index][::stride, ::stride].reshape(-1, 3)
-        source = source[np.isfinite(source).all(axis=-1)]
         distance = np.linalg.norm(xyz[index], axis=-1)
         view_texture = _texture(intensity[index], valid[index], _REFINE_CONTRAST, np.float32)
         view_inside = _interior(distance, *tolerances)
@@ -824,18 +1050,22 @@ def _pose_refiner(ingest: xr.Dataset, xyz: np.ndarray, points: np.ndarray, ref: 
             _sampled(np.where(view_inside > _REFINE_CONTRAST + blur, view_texture, np.nan), distance, blur)
             for blur in _REFINE_LEVELS
         ]
-        scale = float(np.nanmedian(distance))  # metres of surface motion per radian
+        return source[np.isfinite(source).all(axis=-1)], sampled, float(np.nanmedian(distance))
+
+    def refine(index: int, relative: np.ndarray, where: str, iterations: int = _REFINE_ITERATIONS):
+        source, sampled, scale = view_data(index)  # scale: metres of surface motion per radian
         start = np.linalg.inv(relative)
         transform, info = _refine_pose(
             start,
-            lambda current: _point_to_plane(current, source, target, normals, intrinsics, grid, *tolerances),
+            lambda current: _point_to_plane(current, source, target, normals, camera, grid, *tolerances),
             lambda current, level: _texture_residuals(
-                np.linalg.inv(current), sample, textures[level], sampled[level], intrinsics, origin, *tolerances
+                np.linalg.inv(current), sample, textures[level], sampled[level], camera, origin, *tolerances
             ),
             correlation,
             prior,
             np.repeat([scale, 1.0], 3),
-            _REFINE_STEP * scale / max(intrinsics["fx"], intrinsics["fy"]),
+            _REFINE_STEP * scale / max(camera.fx, camera.fy),
+            iterations,
         )
         correction = np.linalg.solve(start, transform)
         twist = _twist(correction)
@@ -855,7 +1085,10 @@ def _pose_refiner(ingest: xr.Dataset, xyz: np.ndarray, points: np.ndarray, ref: 
                 f"(correction so far {moved['correction_mm']:.2f} mm, {moved['correction_deg']:.3f} deg); "
                 f"check the view, or map with the recorded poses (refine=False)"
             )
-        if moved["correction_mm"] > 1e3 * opts["max_translation"] or moved["correction_deg"] > opts["max_rotation"]:
+        bounded = (
+            moved["correction_mm"] <= 1e3 * opts["max_translation"] and moved["correction_deg"] <= opts["max_rotation"]
+        )
+        if recorded and not bounded:
             raise RegistrationError(
                 f"{where}: the pose refinement moves the view by {moved['correction_mm']:.2f} mm and "
                 f"{moved['correction_deg']:.3f} deg, beyond max_translation={opts['max_translation']} m or "
@@ -867,30 +1100,152 @@ def _pose_refiner(ingest: xr.Dataset, xyz: np.ndarray, points: np.ndarray, ref: 
     return refine
 
 
-def _pose_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict):
-    """Build the poses method: a function of a view index giving (col, row, diagnostics)."""
+def _chosen(candidates: list, refine, index: int, where: str) -> tuple[np.ndarray, dict]:
+    """Choose a view's pose among the coarse candidates of :func:`_coarse_transforms`, each refined by ``refine``.
+
+    Among the candidates whose refinement converged (in :data:`_REFINE_ITERATIONS`
+    iterations per level; when none does, all are tried again with
+    :data:`_ESTIMATE_ITERATIONS`) with at least half the most point-to-plane
+    pairs of any (the geometry agrees), the one whose texture
+    agrees best (the smallest ``texture_deviation``; without a texture term the
+    smallest ``shape_deviation_mm``): a symmetric relief has several
+    candidates that only the texture tells apart. A pose whose refinement
+    leaves directions free (a plane without texture) is refused.
+
+    Returns
+    -------
+    transform : (4, 4) ndarray
+        The reference camera frame to the view's.
+    diagnostics : dict
+        The coarse and refinement diagnostics of the chosen candidate and
+        ``candidates`` (how many were refined).
+    """
+    refined, failures = [], []
+    for iterations in (_REFINE_ITERATIONS, _ESTIMATE_ITERATIONS):
+        for transform, coarse in candidates:
+            try:
+                transform, info = refine(index, transform, where, iterations)
+            except RegistrationError as error:
+                failures.append(str(error))
+                continue
+            refined.append((transform, {**coarse, **info, "candidates": len(candidates)}))
+        if refined:
+            break
+    if not refined:
+        raise RegistrationError(
+            f"{where}: none of the {len(candidates)} coarse poses estimated from the clouds could be refined; "
+            f"the first: {failures[-len(candidates)]}"
+        )
+    most = max(info["pairs"] for _, info in refined)
+    agreeing = [(transform, info) for transform, info in refined if info["pairs"] >= 0.5 * most]
+    textured = all(info["texture_pairs"] >= _MIN_TEXTURE for _, info in agreeing)
+    transform, info = min(agreeing, key=lambda pair: pair[1]["texture_deviation" if textured else "shape_deviation_mm"])
+    if info["constrained"] < 6:
+        raise RegistrationError(
+            f"{where}: the clouds fix only {info['constrained']} of the 6 directions of the view's pose (a plane "
+            f"without usable texture?): give the views poses (method='poses') or use method='homography'"
+        )
+    return transform, info
+
+
+def _pose_estimator(xyz: np.ndarray, ref: int, views: list, item: str, tolerance: float, refine):
+    """Build the estimate of the views' poses from their clouds alone (method ``"clouds"``).
+
+    A view is aligned (:func:`_coarse_transforms`) with the view nearest to it
+    in orientation among those nearer the reference view than itself (the
+    reference view, or one already estimated: the angle between two views is
+    that between the normals of their dominant planes), so that views far from
+    the reference view are reached in smaller steps; the candidates are then
+    refined against the reference view and one chosen (:func:`_chosen`).
+
+    Parameters
+    ----------
+    xyz : (view, h, w, 3) ndarray, metres
+        Every view's points, its camera frame; NaN = invalid.
+    ref : int
+        The reference view.
+    views : list of str
+    item : str
+    tolerance : float, metres
+        Of :func:`_coarse_transforms`.
+    refine : callable
+        Of :func:`_pose_refiner`.
+
+    Returns
+    -------
+    callable
+        ``estimated(index)``: the reference-to-view transform (4, 4) of view
+        ``index`` and its diagnostics (those of :func:`_chosen`, ``pose``: the
+        view's camera-to-reference-camera transform, and ``aligned_with``: the
+        view its coarse pose was found against). RegistrationError naming the
+        item and view when it fails.
+    """
+    clouds = [points.reshape(-1, 3) for points in xyz]
+    clouds = [cloud[np.isfinite(cloud).all(axis=-1)] for cloud in clouds]
+    for view, cloud in zip(views, clouds):
+        if len(cloud) < _MIN_PAIRS:
+            raise RegistrationError(
+                f"item {item!r}, view {view!r}: {len(cloud)} valid points, too few to estimate the pose from the clouds"
+            )
+    frames = [_plane_frame(cloud) for cloud in clouds]
+    normals = np.array([frame[:3, 2] for frame in frames])
+    angles = np.arccos(np.clip(normals @ normals.T, -1.0, 1.0))
+    found = {}
+
+    def estimated(index: int) -> tuple[np.ndarray, dict]:
+        if index not in found:
+            where = f"item {item!r}, view {views[index]!r}"
+            nearer = [other for other in range(len(views)) if angles[other, ref] < angles[index, ref]]
+            base = min(nearer, key=lambda other: angles[other, index]) if nearer else ref
+            start = np.eye(4) if base == ref else estimated(base)[0]
+            candidates = [
+                (transform @ start, info)
+                for transform, info in _coarse_transforms(
+                    xyz[base], xyz[index], frames[base], frames[index], tolerance, where
+                )
+            ]
+            transform, info = _chosen(candidates, refine, index, where)
+            info = {**info, "aligned_with": views[base], "pose": np.linalg.inv(transform).tolist()}
+            found[index] = transform, info
+        return found[index]
+
+    return estimated
+
+
+def _pose_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict, estimate: bool = False):
+    """Build the poses methods: a function of a view index giving (col, row, diagnostics), and the camera's attrs.
+
+    The views' recorded poses, refined against the reference view when
+    ``opts["refine"]``, or with ``estimate`` their poses relative to the
+    reference view estimated from the clouds (:func:`_pose_estimator`), always refined.
+    """
     views = [str(view) for view in ingest["view"].values]
-    poses = np.asarray(ingest["pose"].values, dtype=np.float64)
-    _check_poses(poses, views, item)
-    intrinsics = ingest.attrs["camera"]["intrinsics"]
     xyz = np.asarray(ingest["xyz"].transpose("view", "y", "x", "axis").values, dtype=np.float64)
+    camera, described = _camera_model(ingest, xyz, grid, item)
     points = _smooth_range(xyz[ref], opts["smooth"], opts["tolerance"], opts["relative"])
-    refine = _pose_refiner(ingest, xyz, points, ref, grid, opts) if opts["refine"] else None
+    if not estimate:
+        poses = np.asarray(ingest["pose"].values, dtype=np.float64)
+        _check_poses(poses, views, item)
+    refined = opts["refine"] or estimate  # a coarse estimate alone registers no better than to a few mm
+    refine = _pose_refiner(ingest, xyz, points, ref, grid, opts, camera, not estimate) if refined else None
+    estimated = _pose_estimator(xyz, ref, views, item, opts["tolerance"], refine) if estimate else None
 
     def one(index: int):
         if index == ref:
-            unmoved = {"correction_mm": 0.0, "correction_deg": 0.0, "correction": np.eye(4).tolist()} if refine else {}
-            return *_identity(grid), {"mapped": 1.0, "occluded": 0.0, "range_rms": 0.0, **unmoved}
-        transform = np.linalg.solve(poses[index], poses[ref])
-        refined = {}
-        if refine is not None:
-            transform, refined = refine(index, transform, f"item {item!r}, view {views[index]!r}")
+            unmoved = {"correction_mm": 0.0, "correction_deg": 0.0, "correction": np.eye(4).tolist()}
+            return *_identity(grid), {"mapped": 1.0, "occluded": 0.0, "range_rms": 0.0, **(unmoved if refine else {})}
+        if estimate:
+            transform, found = estimated(index)
+        else:
+            transform, found = np.linalg.solve(poses[index], poses[ref]), {}
+            if refine is not None:
+                transform, found = refine(index, transform, f"item {item!r}, view {views[index]!r}")
         col, row, diagnostics = _pose_map(
-            points, transform, intrinsics, xyz[index], *grid, opts["tolerance"], opts["relative"]
+            points, transform, camera, xyz[index], *grid, opts["tolerance"], opts["relative"]
         )
-        return col, row, {**diagnostics, **refined}
+        return col, row, {**diagnostics, **found}
 
-    return one
+    return one, {"camera_model": described}
 
 
 def _roi_mask(roi: Mapping | None, grid, item: str) -> np.ndarray | None:
@@ -931,7 +1286,7 @@ def _homography_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict
             raise RegistrationError(
                 f"{where}: only {len(src)} keypoint matches ({opts['detector']}, ratio {opts['ratio']}; "
                 f"min_matches={opts['min_matches']}): too little common texture for a homography; "
-                f"give the views poses and camera intrinsics (method='poses') or lower min_matches"
+                f"give the views poses (method='poses'), use method='clouds' or lower min_matches"
             )
         src, dst = src + offset, dst + offset
         matrix, inliers = _fit_homography(src, dst, opts["threshold"])
@@ -956,7 +1311,7 @@ def _homography_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict
             },
         )
 
-    return one
+    return one, {}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -976,11 +1331,12 @@ def registration_maps(
         ``intensity`` and ``valid`` (view, y, x) (the homography method);
         ``pose`` (view, row, col) camera-to-world, metres; ``y``/``x`` are
         contiguous sensor indices. Attrs ``item``, ``reference_view`` and
-        ``camera`` (``intrinsics``: ``fx``, ``fy``, ``cx``, ``cy``). Computed
-        eagerly (the images are small).
-    method : {"auto", "poses", "homography"}
-        ``"auto"`` takes ``"poses"`` when every view has a pose and the camera
-        has intrinsics, else ``"homography"``.
+        ``camera`` (optional ``intrinsics``: ``fx``, ``fy``, ``cx``, ``cy``,
+        ``distortion``). Computed eagerly (the images are small).
+    method : {"auto", "poses", "clouds", "homography"}
+        ``"auto"`` takes ``"poses"`` when every view has a pose, else
+        ``"clouds"`` (poses estimated from the clouds), and when that fails
+        ``"homography"``.
     reference : str, optional
         The view whose grid the maps are on; default ``ingest.attrs
         ["reference_view"]``, else the first view.
@@ -995,7 +1351,7 @@ def registration_maps(
         which the reference range is averaged (1 = the raw points);
         ``refine`` (bool): refine each view's pose against the reference
         view's before mapping (the recorded poses need only be right to a few
-        mm and tenths of a degree); ``max_translation`` (metres) and
+        mm and tenths of a degree; ``"clouds"`` always refines); ``max_translation`` (metres) and
         ``max_rotation`` (degrees): a correction beyond either is refused.
         Homography: ``detector`` (a key of :data:`DETECTORS`),
         ``ratio`` (Lowe's test), ``threshold`` (MAGSAC++ inlier threshold,
@@ -1025,9 +1381,19 @@ def registration_maps(
         reference view), ``correction_mm`` and ``correction_deg`` (its
         translation and rotation angle), ``iterations``, ``pairs`` and
         ``texture_pairs`` (point-to-plane and texture residuals in the last
-        iteration; the texture term needs 300) and
+        iteration; the texture term needs 300), their robust standard
+        deviations ``shape_deviation_mm`` and ``texture_deviation``, and
         ``constrained`` (pose directions the data fixed; 6 on a textured
-        surface, 3 on a plane without usable texture).
+        surface, 3 on a plane without usable texture); for ``"clouds"`` the
+        same (``correction`` then corrects the coarse estimate) and ``pose``
+        (4 x 4, the view's camera frame to the reference camera's),
+        ``coarse_turn_deg``, ``coarse_response``, ``candidates`` and
+        ``aligned_with`` (:func:`_pose_estimator`). For ``"poses"`` and
+        ``"clouds"`` the attr ``camera_model``: ``source`` (``"given"``:
+        intrinsics with distortion, or ``"estimated"`` from the clouds), ``fx``,
+        ``fy``, ``cx``, ``cy``, ``distortion`` and ``residual_px`` (rms distance
+        between the views' pixels and the model's projections of their points;
+        with intrinsics without distortion also ``given_residual_px``, theirs).
 
     Raises
     ------
@@ -1035,7 +1401,9 @@ def registration_maps(
         Naming the item and view: too few matches or inliers (homography),
         poses requested but missing or not rigid, a pose refinement that does
         not converge or corrects a pose beyond ``max_translation`` /
-        ``max_rotation``, unknown reference view.
+        ``max_rotation``, clouds that do not fix a view's pose, a camera model
+        fitted to the clouds that misses their pixels by more than 0.5 px,
+        unknown reference view.
     ValueError, TypeError
         Unknown method or option, or non-contiguous ``y``/``x``.
     """
@@ -1047,14 +1415,32 @@ def registration_maps(
     if reference not in views:
         raise RegistrationError(f"item {item!r}: reference view {reference!r} is not one of its views {views}")
     why_not = _poses_usable(ingest)
-    chosen = method if method != "auto" else ("poses" if why_not is None else "homography")
+    chosen = method if method != "auto" else ("poses" if why_not is None else "clouds")
     if chosen == "poses" and why_not is not None:
-        raise RegistrationError(f"item {item!r}: method='poses' needs a pose for every view, but {why_not}")
-    opts = _options(chosen, options, auto=method == "auto")
+        raise RegistrationError(
+            f"item {item!r}: method='poses' needs a pose for every view, but {why_not}; method='clouds' "
+            f"estimates the poses from the views' clouds"
+        )
     grid = (_sensor_indices(ingest["x"], "x"), _sensor_indices(ingest["y"], "y"))
-    build = _pose_mapper if chosen == "poses" else _homography_mapper
-    mapper = build(ingest, views.index(reference), item, grid, opts)
-    cols, rows, diagnostics = zip(*(mapper(index) for index in range(len(views))))
+    build = {"poses": _pose_mapper, "clouds": partial(_pose_mapper, estimate=True), "homography": _homography_mapper}
+
+    def maps_by(chosen: str):
+        opts = _options(chosen, options, auto=method == "auto")
+        mapper, described = build[chosen](ingest, views.index(reference), item, grid, opts)
+        return opts, described, *zip(*(mapper(index) for index in range(len(views))))
+
+    try:
+        opts, described, cols, rows, diagnostics = maps_by(chosen)
+    except RegistrationError as error:
+        if not (method == "auto" and chosen == "clouds"):
+            raise
+        try:
+            chosen, (opts, described, cols, rows, diagnostics) = "homography", maps_by("homography")
+        except RegistrationError as second:
+            raise RegistrationError(
+                f"item {item!r} has no poses, and neither registration without them worked: from the clouds, {error}; "
+                f"by homography, {second}"
+            ) from None
     dims = ("view", "y", "x")
     return xr.Dataset(
         {
@@ -1068,6 +1454,7 @@ def registration_maps(
             "reference_view": reference,
             "parameters": opts,
             "diagnostics": dict(zip(views, diagnostics)),
+            **described,
         },
     )
 

@@ -114,16 +114,18 @@ def registration_stage(
 ) -> xr.Dataset:
     """Reflectance and AOI of every view on the reference view's grid (method step 4).
 
-    With poses, ``refine`` refines each view's pose against the reference
-    view's first, refusing a correction beyond ``max_translation`` (metres) or
+    ``method`` is one of :data:`~surffin.method.registration.METHODS`. With
+    poses, ``refine`` refines each view's pose against the reference view's
+    first, refusing a correction beyond ``max_translation`` (metres) or
     ``max_rotation`` (degrees); the corrections are in the attrs
-    (``diagnostics``). The homography ignores the three.
+    (``diagnostics``). Poses estimated from the clouds (``"clouds"``) are
+    refined too, without those bounds. The homography ignores the three.
     """
     roi = Roi.from_mapping(roi)
     options = {}
     if method != "homography":
         options.update(refine=refine, max_translation=max_translation, max_rotation=max_rotation)
-    if roi is not None and method != "poses":
+    if roi is not None and method in ("auto", "homography"):
         # the roi picks the plane a homography registers (a specimen on its board); poses need none
         options["roi"] = {"y": list(roi.y), "x": list(roi.x)}
     maps = registration_maps(ingest.compute(), method=method, **options)

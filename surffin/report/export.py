@@ -29,6 +29,7 @@ import xarray as xr
 
 from surffin.io.files import write_atomically
 from surffin.io.store import open_store
+from surffin.method.camera_model import fit_camera_model
 from surffin.method.classify import UNCLASSIFIED, UNCLASSIFIED_REASONS
 from surffin.report.canvas import figure, save
 from surffin.report.figures import class_colours, label_overlay, reference_view
@@ -42,19 +43,12 @@ PLY_FIELDS = ("R0", "n", "variability", "class", "R0_uncertainty", "n_uncertaint
 
 
 def _focal_lengths(points: np.ndarray, camera: Mapping, y: np.ndarray, x: np.ndarray) -> tuple[float, float]:
-    """Return the camera's fx, fy: its intrinsics, else fitted from the organized cloud (u - cx = fx x / z)."""
+    """Return the camera's fx, fy: its intrinsics, else those of the camera model fitted to the organized cloud."""
     intrinsics = camera.get("intrinsics")
     if intrinsics:
         return float(intrinsics["fx"]), float(intrinsics["fy"])
-    v, u = np.meshgrid(y, x, indexing="ij")
-    ok = np.isfinite(points).all(axis=-1) & (points[..., 2] > 0)
-    if ok.sum() < 3:
-        raise ValueError("no intrinsics in the store's camera and too few valid points to estimate them")
-    focal = []
-    for pixel, ratio in ((u[ok], points[ok, 0] / points[ok, 2]), (v[ok], points[ok, 1] / points[ok, 2])):
-        design = np.column_stack([ratio, np.ones_like(ratio)])
-        focal.append(float(np.linalg.lstsq(design, pixel.astype(np.float64), rcond=None)[0][0]))
-    return focal[0], focal[1]
+    model, _ = fit_camera_model(points, x, y)
+    return model.fx, model.fy
 
 
 def pixel_area(points: np.ndarray, aoi: np.ndarray, fx: float, fy: float) -> np.ndarray:

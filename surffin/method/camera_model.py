@@ -1,0 +1,249 @@
+"""The camera model: pinhole with Brown-Conrady lens distortion, and its estimate from organized clouds.
+
+A point ``(x, y, z)`` of the camera frame (OpenCV axes) is seen at the sensor
+column and row
+
+    a, b = x / z, y / z,  r2 = a^2 + b^2
+    radial = (1 + k1 r2 + k2 r2^2 + k3 r2^3) / (1 + k4 r2 + k5 r2^2 + k6 r2^3)
+    col = fx (a radial + 2 p1 a b + p2 (r2 + 2 a^2)) + cx
+    row = fy (b radial + p1 (r2 + 2 b^2) + 2 p2 a b) + cy
+
+OpenCV's model (``cv2.projectPoints``) with the coefficients ``[k1, k2, p1, p2[,
+k3[, k4, k5, k6]]]`` of ``camera.intrinsics.distortion`` in campaign.yaml. An
+organized cloud holds at every valid pixel the point its ray met, so every pixel
+is an exact pair of ``(x / z, y / z)`` and its sensor position (the distorted
+image of its ray): when a campaign gives no intrinsics, or no distortion,
+:func:`fit_camera_model` estimates the model from the clouds themselves, and
+:func:`model_residual` checks a model against them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+__all__ = ["CameraModel", "fit_camera_model", "model_residual"]
+
+_TERMS = 8  # k1, k2, p1, p2, k3, k4, k5, k6
+_FITTED = 5  # the distortion terms fitted by fit_camera_model: k1, k2, p1, p2, k3
+_SAMPLES = 20000  # about this many pixels (a regular subsample of all views) enter a fit or a residual
+_FOLD_SCAN = np.linspace(0.0, 4.0, 4001)[1:]  # r2 (normalised) scanned for the fold of the radial distortion
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Pinhole intrinsics and OpenCV distortion coefficients of a camera.
+
+    Attributes
+    ----------
+    fx, fy, cx, cy : float
+        Pixels, of the distorted model: the sensor position is
+        ``fx * x_distorted + cx`` (column), ``fy * y_distorted + cy`` (row).
+    distortion : tuple of float
+        ``(k1, k2, p1, p2[, k3[, k4, k5, k6]])`` in OpenCV's order; empty: none.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: tuple[float, ...] = ()
+
+    @classmethod
+    def from_intrinsics(cls, intrinsics: Mapping) -> CameraModel:
+        """Make the model of ``camera.intrinsics``: ``fx``, ``fy``, ``cx``, ``cy`` and optional ``distortion``."""
+        distortion = tuple(float(value) for value in intrinsics.get("distortion") or ())
+        if len(distortion) not in (0, 4, 5, 8):
+            raise ValueError(f"distortion must have 4, 5 or 8 coefficients (OpenCV order), got {distortion!r}")
+        return cls(*(float(intrinsics[key]) for key in ("fx", "fy", "cx", "cy")), distortion)
+
+    def as_dict(self) -> dict:
+        """Return ``{"fx", "fy", "cx", "cy", "distortion"}`` (as in campaign.yaml; distortion a list)."""
+        return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "distortion": list(self.distortion)}
+
+    def coefficients(self) -> np.ndarray:
+        """Return the distortion coefficients padded with zeros to all eight terms (8,)."""
+        return np.pad(np.asarray(self.distortion, dtype=np.float64), (0, _TERMS - len(self.distortion)))
+
+    def fold(self) -> float:
+        """Return the largest ``r2 = (x / z)^2 + (y / z)^2`` up to which the radial distortion grows with r.
+
+        Beyond it a polynomial lens model folds back (points far outside the
+        field of view would land on the sensor); :meth:`project` sends them
+        nowhere. ``inf`` without distortion or when no fold is found up to
+        ``r2 = 4`` (63 deg off the axis).
+        """
+        k1, k2, _, _, k3, k4, k5, k6 = self.coefficients()
+        r2 = _FOLD_SCAN
+        numerator, denominator = 1 + r2 * (k1 + r2 * (k2 + r2 * k3)), 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        # d(r radial)/dr = radial + 2 r2 d(radial)/d(r2) > 0, and the denominator keeps its sign
+        grows = (numerator * denominator + 2 * r2 * _radial_slope(r2, k1, k2, k3, k4, k5, k6) > 0) & (denominator > 0)
+        stops = np.flatnonzero(~grows)
+        return float(r2[stops[0]]) if stops.size else float("inf")
+
+    def project(self, points: np.ndarray, origin: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, np.ndarray]:
+        """Return the column and row where camera-frame points are seen.
+
+        Parameters
+        ----------
+        points : (..., 3) ndarray, camera frame
+        origin : (row, col)
+            Positions on a grid whose first pixel is this sensor pixel; (0, 0):
+            sensor positions.
+
+        Returns
+        -------
+        col, row : (...) ndarray of float64
+            NaN at or behind the camera, for NaN points and beyond the fold of
+            the lens model (:meth:`fold`).
+        """
+        a, b, usable = self._normalised(points)
+        xd, yd = self._distorted(a, b)
+        col = np.where(usable, self.fx * xd + (self.cx - origin[1]), np.nan)
+        row = np.where(usable, self.fy * yd + (self.cy - origin[0]), np.nan)
+        return col, row
+
+    def jacobian(self, points: np.ndarray) -> np.ndarray:
+        """Return the derivative of (column, row) with respect to the point, (..., 2, 3); NaN where not projected."""
+        a, b, usable = self._normalised(points)
+        k1, k2, p1, p2, k3, k4, k5, k6 = self.coefficients()
+        r2 = a * a + b * b
+        radial = _radial(r2, k1, k2, k3, k4, k5, k6)
+        slope = _radial_slope(r2, k1, k2, k3, k4, k5, k6) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6))) ** 2
+        da = np.stack(
+            [radial + 2 * a * a * slope + 2 * p1 * b + 6 * p2 * a, 2 * a * b * slope + 2 * p1 * a + 2 * p2 * b]
+        )
+        db = np.stack(
+            [2 * a * b * slope + 2 * p1 * a + 2 * p2 * b, radial + 2 * b * b * slope + 6 * p1 * b + 2 * p2 * a]
+        )
+        scale = np.array([self.fx, self.fy]).reshape(2, *(1,) * a.ndim)
+        da, db = da * scale, db * scale
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inverse = np.where(usable, 1.0 / points[..., 2], np.nan)
+        # a = x / z, b = y / z: da/dpoint = (1, 0, -a) / z, db/dpoint = (0, 1, -b) / z
+        out = np.stack([da * inverse, db * inverse, -(da * a + db * b) * inverse], axis=-1)
+        return np.moveaxis(out, 0, -2)
+
+    def _normalised(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return ``x / z``, ``y / z`` (0 where unusable) and where the projection is defined."""
+        depth = points[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            usable = depth > 0
+            a = np.where(usable, points[..., 0] / depth, 0.0)
+            b = np.where(usable, points[..., 1] / depth, 0.0)
+            if self.distortion:
+                usable &= a * a + b * b <= self.fold()
+        usable &= np.isfinite(a) & np.isfinite(b)
+        return np.where(usable, a, 0.0), np.where(usable, b, 0.0), usable
+
+    def _distorted(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return the distorted normalised coordinates of undistorted ones."""
+        if not self.distortion:
+            return a, b
+        k1, k2, p1, p2, k3, k4, k5, k6 = self.coefficients()
+        r2 = a * a + b * b
+        radial = _radial(r2, k1, k2, k3, k4, k5, k6)
+        return (
+            a * radial + 2 * p1 * a * b + p2 * (r2 + 2 * a * a),
+            b * radial + p1 * (r2 + 2 * b * b) + 2 * p2 * a * b,
+        )
+
+
+def _radial(r2, k1, k2, k3, k4, k5, k6):
+    """Return the radial factor of the distortion at ``r2``."""
+    return (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+
+
+def _radial_slope(r2, k1, k2, k3, k4, k5, k6):
+    """Return the derivative of the radial factor by ``r2``, times its denominator squared."""
+    numerator = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    denominator = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    return (k1 + r2 * (2 * k2 + 3 * r2 * k3)) * denominator - numerator * (k4 + r2 * (2 * k5 + 3 * r2 * k6))
+
+
+def _pairs(xyz: np.ndarray, columns: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return the valid points (N, 3) of a regular subsample of organized clouds and their pixels (N, 2)."""
+    stride = max(1, round(np.sqrt(xyz[..., 0].size / _SAMPLES)))
+    points = xyz[..., ::stride, ::stride, :]
+    cols, rws = np.meshgrid(columns[::stride], rows[::stride])
+    sensor = np.broadcast_to(np.stack([cols, rws], axis=-1), (*points.shape[:-1], 2))
+    with np.errstate(invalid="ignore"):
+        known = np.isfinite(points).all(axis=-1) & (points[..., 2] > 0)
+    return points[known].astype(np.float64), sensor[known].astype(np.float64)
+
+
+def model_residual(model: CameraModel, xyz: np.ndarray, columns: np.ndarray, rows: np.ndarray) -> float:
+    """Return the rms (pixels) of the model's projections of organized clouds' points from their pixels.
+
+    Parameters
+    ----------
+    model : CameraModel
+    xyz : (..., h, w, 3) ndarray
+        Organized clouds, camera frame; NaN = invalid.
+    columns, rows : (w,), (h,) ndarray of int
+        Sensor indices of the clouds' grid.
+
+    Returns
+    -------
+    float
+        Over a regular subsample of about 20000 valid pixels; NaN when none.
+    """
+    points, sensor = _pairs(xyz, columns, rows)
+    col, row = model.project(points)
+    return float(np.sqrt(np.mean((col - sensor[:, 0]) ** 2 + (row - sensor[:, 1]) ** 2))) if len(points) else np.nan
+
+
+def fit_camera_model(xyz: np.ndarray, columns: np.ndarray, rows: np.ndarray) -> tuple[CameraModel, float]:
+    """Estimate the camera model from organized clouds: each valid pixel pairs ``(x / z, y / z)`` with its position.
+
+    ``fx``, ``cx`` (and ``fy``, ``cy``) start from a linear least-squares fit of
+    the pinhole; then ``fx``, ``fy``, ``cx``, ``cy`` and the distortion ``k1, k2,
+    p1, p2, k3`` are fitted by nonlinear least squares
+    (``scipy.optimize.least_squares``) over a regular subsample of about 20000
+    valid pixels of all views.
+
+    Parameters
+    ----------
+    xyz : (..., h, w, 3) ndarray
+        Organized clouds, camera frame (any unit); NaN = invalid.
+    columns, rows : (w,), (h,) ndarray of int
+        Sensor indices of the clouds' grid.
+
+    Returns
+    -------
+    model : CameraModel
+        With five distortion coefficients.
+    residual : float
+        Rms of the fit, pixels.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 50 valid pixels.
+    """
+    points, sensor = _pairs(xyz, columns, rows)
+    if len(points) < 50:
+        raise ValueError(f"only {len(points)} valid pixels: too few to estimate the camera model")
+    normalised = points[:, :2] / points[:, 2:]
+    start = []
+    for axis in (0, 1):
+        design = np.stack([normalised[:, axis], np.ones(len(points))], axis=-1)
+        start.append(np.linalg.lstsq(design, sensor[:, axis], rcond=None)[0])
+    (fx, cx), (fy, cy) = start
+
+    def model_of(parameters: np.ndarray) -> CameraModel:
+        return CameraModel(*(float(value) for value in parameters[:4]), tuple(float(value) for value in parameters[4:]))
+
+    def residuals(parameters: np.ndarray) -> np.ndarray:
+        # unguarded by the fold: a trial model may fold inside the data
+        xd, yd = model_of(parameters)._distorted(*normalised.T)
+        return np.concatenate(
+            [parameters[0] * xd + parameters[2] - sensor[:, 0], parameters[1] * yd + parameters[3] - sensor[:, 1]]
+        )
+
+    fit = least_squares(residuals, np.array([fx, fy, cx, cy, *np.zeros(_FITTED)]), x_scale="jac", method="lm")
+    model = model_of(fit.x)
+    return model, model_residual(model, xyz, columns, rows)
