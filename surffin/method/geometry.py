@@ -20,8 +20,16 @@ shifted by half a window) whose mean squared depth residual is at most twice the
 further level pools the moments over 2 x 2 cells and doubles the windows, up to ``max_window``:
 the larger plane replaces a pixel's while the chosen window is usable (no edge, half valid) and
 its residual stays within 1.5 times the smallest base residual around the pixel (the local depth
-noise); across a crease or on a curved surface it fits worse and is refused. Measurements:
-``docs/performance.md``.
+noise); across a crease or on a strongly curved surface it fits worse and is refused.
+
+Curved surfaces: a plane fitted to a window of a gently curved surface (which passes the residual
+test) has the normal of the surface at the window's centroid, not at a pixel away from it (a window
+shifted by half its side, cut by the image border, or a pixel off its cell's centre): on a 0.3 m
+cylinder, 3.5 deg at 18 mm. Above the base level, each plane comes with the slopes of the normal with
+x', y' from the windows half a window away, and the pixel's normal is carried from the centroid to
+the pixel along them, by what the carry exceeds its noise (:func:`_carry`): on a plane the noise is
+all there is and the normal is kept. Measurements: ``docs/performance.md``,
+``benchmarks/bench_curved.py``.
 """
 
 from __future__ import annotations
@@ -69,6 +77,8 @@ _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 # A larger window replaces a pixel's plane when its mean squared residual is at most this many times
 # the smallest of the base windows that contain the pixel (the local noise).
 _GROWTH = 1.5
+# A slope of the normal carries a pixel's normal only by what it exceeds this many standard deviations of its noise.
+_SIGNIFICANCE = 2.0
 # Pixels per block of the per-pixel arithmetic: its temporaries stay in the L2 cache.
 _BLOCK = 16384
 
@@ -282,7 +292,7 @@ def _choose_windows(residual: np.ndarray, eligible: np.ndarray, window: int) -> 
 
 def _level_planes(
     moments: np.ndarray, centre: np.ndarray, edges: np.ndarray, eligible: np.ndarray, window: int, min_count: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Planes of the windows of one level of the moment pyramid, and the window each cell takes.
 
     Parameters
@@ -310,7 +320,15 @@ def _level_planes(
         :func:`_choose_windows`: flat index of the chosen window's centre, -1 for none.
     smallest : (h, w) ndarray of float32
         The smallest residual among the cell's 9 windows.
+    centroid : (2, h, w) ndarray of float64
+        Mean ray coordinates x', y' of the valid pixels of the window centred on
+        each cell: where its plane is the surface's tangent plane, to first order.
+    noise : (h, w) ndarray of float64
+        Variance of the direction of that window's normal from its residual,
+        rad^2 (the least-squares variance of the slopes a, b over |(a, b, e)|^2).
     """
+    centroid = np.empty((2, *moments.shape[1:]))
+    noise = np.empty(moments.shape[1:])
     for plane in moments:
         _box(plane, window, out=plane)
     usable = (_box(edges.astype(np.float32), window) == 0) & (moments[0] >= min_count)
@@ -328,15 +346,128 @@ def _level_planes(
             a = (syy * sxq - sxy * syq) * inverse_determinant
             b = (sxx * syq - sxy * sxq) * inverse_determinant
             mean += centre[:, None, None]
+            centroid[:, rows] = mean[:2]
             e = mean[2] - a * mean[0] - b * mean[1]
             scale = 1.0 / np.sqrt(a * a + b * b + e * e)
             normal[0, rows], normal[1, rows], normal[2, rows] = a * scale, b * scale, e * scale
             # residual variance of q times z^4 = 1 / mean(q)^4: depth units
             variance = (sqq - a * sxq - b * syq) * inverse
+            noise[rows] = np.maximum(variance, 0.0) * (sxx + syy) * inverse_determinant * scale * scale
             mean[2] *= mean[2]
             residual[rows] = np.where(planar, variance / (mean[2] * mean[2]), np.inf)
     source, smallest = _choose_windows(residual, eligible, window)
-    return normal, residual, source, smallest
+    return normal, residual, source, smallest, centroid, noise
+
+
+def _normal_slopes(
+    normal: np.ndarray, centroid: np.ndarray, noise: np.ndarray, residual: np.ndarray, source: np.ndarray, half: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each cell's chosen plane as a first-order model of the normal around its window's centroid.
+
+    A plane fitted to a window of a curved surface has, to first order, the
+    surface's normal at the centroid of the window's points, not at a pixel
+    away from it: a window shifted by half its side, cut by the image border
+    or holed, or a cell's pixel off the cell's centre, errs by the curvature
+    times that offset (3.5 deg for 18 mm on a 0.3 m radius). The slopes ``J``
+    of the normal with the ray coordinates x', y' are the least-squares fit to
+    the windows half a window away along rows and columns (those whose residual
+    is within :data:`_PLANARITY` times the chosen window's: never across a
+    crease), with their variance from the windows' normal noise; :func:`_carry`
+    takes the normal to each pixel.
+
+    Parameters
+    ----------
+    normal : (3, h, w) ndarray of float64
+        Unit normals of the windows centred on each cell (:func:`_level_planes`),
+        consistently oriented (``(a, b, e) . P = 1`` on the plane).
+    centroid : (2, h, w) ndarray of float64
+        Their centroids in ray coordinates.
+    noise : (h, w) ndarray of float64
+        Variance of their normals' directions, rad^2.
+    residual : (h, w) ndarray of float64
+        Their residuals, inf where a window is not usable.
+    source : (h, w) ndarray of intp
+        Flat index of each cell's chosen window's centre, -1 for none.
+    half : int
+        Half a window, cells.
+
+    Returns
+    -------
+    model : (14, h, w) ndarray of float64
+        The chosen window's normal ``n`` (3) and centroid ``m`` (2), the slopes
+        ``J`` (3 x 2, row-major: d n_k / d x', d n_k / d y'; along the one axis
+        with neighbours when only one has) and the variance ``V`` of ``J``'s
+        rows (xx, xy, yy, 1/(x' y') units: a correction ``J o`` has variance
+        ``o^T V o`` per unit of normal direction); meaningless for cells without a window.
+    known : (h, w) ndarray of bool
+        The slopes are known along both axes.
+    """
+    height, width = source.shape
+    chosen = np.maximum(source, 0)
+    row, column = np.divmod(chosen, width)
+    normals, centroids, residuals = normal.reshape(3, -1), centroid.reshape(2, -1), residual.reshape(-1)
+    model = np.zeros((14, height, width))
+    own_normal, own_centroid = model[:3], model[3:5]
+    slopes, variance = model[5:11].reshape(3, 2, height, width), model[11:]
+    own_normal[:], own_centroid[:] = normals[:, chosen], centroids[:, chosen]
+    limit = np.where(source >= 0, _PLANARITY * np.maximum(residuals[chosen], 0.0), -np.inf)
+    noises, own_noise = noise.reshape(-1), noise.reshape(-1)[chosen]
+    scatter = np.zeros((3, height, width))  # sum of d d^T: xx, xy, yy
+    spread = np.zeros((3, height, width))  # sum of the changes' noise times d d^T
+    moments = np.zeros((3, 2, height, width))  # sum of (change of the normal) d^T
+    for dy, dx in _DIRECTIONS[:2]:
+        for sign in (-1, 1):
+            other_row, other_column = row + sign * dy * half, column + sign * dx * half
+            inside = (other_row >= 0) & (other_row < height) & (other_column >= 0) & (other_column < width)
+            other = np.where(inside, other_row * width + other_column, 0)
+            used = inside & (residuals[other] <= limit)
+            step = np.where(used, centroids[:, other] - own_centroid, 0.0)
+            change = np.where(used, normals[:, other] - own_normal, 0.0)
+            products = np.stack((step[0] * step[0], step[0] * step[1], step[1] * step[1]))
+            scatter += products
+            spread += products * (own_noise + noises[other])
+            moments += change[:, None] * step[None]
+    determinant = scatter[0] * scatter[2] - scatter[1] * scatter[1]
+    trace = scatter[0] + scatter[2]
+    with np.errstate(invalid="ignore", divide="ignore"):  # cells without neighbours: no slope
+        # the (pseudo-)inverse of the scatter: both axes, or along the one with neighbours (S / trace^2), or none
+        both = determinant > _MIN_DETERMINANT * trace * trace
+        along = np.where(~both & (trace > 0), 1.0 / (trace * trace), 0.0)
+        inverse = np.where(both, 1.0 / determinant, 0.0)
+        pseudo = (
+            scatter[2] * inverse + scatter[0] * along,
+            -scatter[1] * inverse + scatter[1] * along,
+            scatter[0] * inverse + scatter[2] * along,
+        )
+    slopes[:, 0] = moments[:, 0] * pseudo[0] + moments[:, 1] * pseudo[1]
+    slopes[:, 1] = moments[:, 0] * pseudo[1] + moments[:, 1] * pseudo[2]
+    # the least-squares sandwich: pseudo-inverse x spread x pseudo-inverse
+    pxx, pxy, pyy = pseudo
+    sxx, sxy, syy = spread
+    variance[0] = pxx * (pxx * sxx + pxy * sxy) + pxy * (pxx * sxy + pxy * syy)
+    variance[1] = pxx * (pxy * sxx + pyy * sxy) + pxy * (pxy * sxy + pyy * syy)
+    variance[2] = pxy * (pxy * sxx + pyy * sxy) + pyy * (pxy * sxy + pyy * syy)
+    return model, both
+
+
+def _carry(model: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """Evaluate :func:`_normal_slopes`' models (14, H, W), upsampled to pixels, at their rays (2, H, W).
+
+    The correction ``c = J (r - m)``, with ``v = o^T V o`` its noise variance, is
+    shrunk by ``max(0, 1 - s^2 v / |c|^2)`` (s = :data:`_SIGNIFICANCE`, a
+    positive-part James-Stein factor): where the slopes are noise (a plane) it
+    vanishes, and the plane's normal is kept as it is; where they are the
+    surface's curvature it stays.
+    """
+    x, y = rays[0] - model[3], rays[1] - model[4]
+    slopes, variance = model[5:11], model[11:]
+    correction = [slopes[2 * k] * x + slopes[2 * k + 1] * y for k in range(3)]
+    noise = variance[0] * x * x + 2.0 * variance[1] * x * y + variance[2] * y * y
+    size = correction[0] * correction[0] + correction[1] * correction[1] + correction[2] * correction[2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shrink = np.where(size > 0.0, np.clip(1.0 - _SIGNIFICANCE**2 * noise / size, 0.0, 1.0), 0.0)
+    carried = np.stack([model[k] + shrink * correction[k] for k in range(3)])
+    return carried / np.sqrt(carried[0] * carried[0] + carried[1] * carried[1] + carried[2] * carried[2])
 
 
 def _levels(window: int, max_window: int) -> int:
@@ -377,19 +508,21 @@ def _window_planes(
     eligible = valid & ~edges
     moments, centre = _moments(points, valid)
     levels = _levels(window, max_window)
+    rays = moments[1:3] + centre[:2, None, None] if levels > 1 else None  # x', y' (meaningless where invalid)
     pooled = _pool(moments) if levels > 1 else None
     min_count = max(3, math.ceil(min_fraction * window * window - 1e-9))
-    normal, _, source, smallest = _level_planes(moments, centre, edges, eligible, window, min_count)
+    normal, _, source, smallest, _, _ = _level_planes(moments, centre, edges, eligible, window, min_count)
     taken = source >= 0
     out = normal.reshape(3, -1).take(np.where(taken, source, 0), axis=1).reshape(3, *valid.shape)
     out[:, ~taken] = np.nan
     limit = _GROWTH * smallest
     edge_count, eligible_count = edges.astype(np.float32), eligible.astype(np.float32)
+    slopes = sloped = None  # of the previous level's cells: the slopes of the normal (9, h, w), known on both axes
     for level in range(1, levels):
         moments, edge_count, eligible_count = pooled, _pool(edge_count), _pool(eligible_count)
         pooled = _pool(moments) if level + 1 < levels else None
         min_count = max(3, math.ceil(min_fraction * (window * 2**level) ** 2 - 1e-9))
-        normal, residual, source, _ = _level_planes(
+        normal, residual, source, _, centroid, noise = _level_planes(
             moments, centre, edge_count > 0, eligible_count > 0, window, min_count
         )
         chosen = np.where(source >= 0, source, 0)
@@ -397,8 +530,15 @@ def _window_planes(
         taken &= _upsample(fit, level, valid.shape) <= limit
         if not taken.any():
             break
-        cells = normal.reshape(3, -1).take(chosen, axis=1).reshape(3, *source.shape)
-        np.copyto(out, _upsample(cells, level, valid.shape), where=taken)
+        model, known = _normal_slopes(normal, centroid, noise, residual, source, window // 2)
+        if slopes is not None:
+            # a cell without slopes on both axes takes the mean of its 2 x 2 smaller cells' that had them
+            weight = _pool(sloped.astype(np.float64))
+            fill = ~known & (weight > 0)
+            model[5:, fill] = (_pool(slopes * sloped) / np.where(fill, weight, 1.0))[:, fill]
+            known |= fill
+        slopes, sloped = model[5:], known
+        np.copyto(out, _carry(_upsample(model, level, valid.shape), rays), where=taken)
     return out
 
 

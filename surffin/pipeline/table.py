@@ -64,7 +64,7 @@ STAGES = {
     for stage in (
         Stage("calibration", calibrate, ("views",), "calibration.zarr", 5),
         Stage("ingest", ingest_item, ("views",), "ingest/{item}.zarr", 3),
-        _chain("aoi", 4),
+        _chain("aoi", 5),
         _chain("reflectance", 4),
         _chain("registration", 4),
         _chain("features", 5),

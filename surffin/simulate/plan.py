@@ -163,7 +163,7 @@ def _specimen(preset: Preset, seed: int, index: int) -> Acquisition:
     label = preset.classes.index(specimen.cls)
     faces = (
         plane_face("board", preset.board),
-        *box_faces(specimen.name, centre, preset.specimen_size, height, 0.0, specimen.material, label),
+        *box_faces(specimen.name, centre, preset.specimen_size, height, 0.0, specimen.material, label, specimen.radius),
     )
     target = (*centre, -height)
     poses = _orbit(preset, seed, specimen.name, target, preset.specimen_distance, preset.specimen_tilts, index)
@@ -203,6 +203,7 @@ def _scene(preset: Preset, seed: int, index: int, layout: SceneLayout) -> Acquis
             np.deg2rad(rotation),
             piece.material,
             preset.classes.index(piece.cls),
+            piece.radius,
         )
     target = (*middle, -float(np.mean([preset.thickness(piece) for piece in layout.pieces])))
     turn = len(preset.specimens) + index

@@ -62,7 +62,12 @@ class Specimen:
         What its faces are made of; its name identifies the texture draw, so
         two pieces of one class need two material names.
     thickness : float or None, metres
-        Height above the board; None takes the preset's ``specimen_thickness``.
+        Height above the board (of its top's centre); None takes the preset's
+        ``specimen_thickness``.
+    radius : float or None, metres
+        Signed radius of a cylindrical top (a curved panel, bent along its
+        in-plane X axis): positive convex, negative concave; None flat. See
+        :func:`~surffin.simulate.scene.box_faces`.
     """
 
     name: str
@@ -70,6 +75,7 @@ class Specimen:
     roughness_mm: float | None
     material: Material
     thickness: float | None = None
+    radius: float | None = None
 
 
 def plaster(name: str, roughness_mm: float, R0: float, grain_length: float = 0.001) -> Specimen:

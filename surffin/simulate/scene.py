@@ -1,11 +1,13 @@
-"""Planar scenes for the synthetic camera: faces, materials and ray casting.
+"""Scenes for the synthetic camera: faces, materials and ray casting.
 
-A scene is a list of planar rectangular faces (an unbounded plane for the wall
-or board). Each face carries a material whose reflectance at normal incidence
-``R0(s, t)`` and scattering coefficient ``n(s, t)`` are maps in the face's own
-coordinates (metres along its in-plane axes ``u``, ``v``), so that a texture
-moves and turns with the specimen it belongs to. A specimen is a box raised from
-the board towards the camera: a top face and four side faces.
+A scene is a list of rectangular faces (an unbounded plane for the wall or
+board), planar or bent into a cylindrical panel. Each face carries a material
+whose reflectance at normal incidence ``R0(s, t)`` and scattering coefficient
+``n(s, t)`` are maps in the face's own coordinates (metres along its axes
+``u``, ``v``; on a cylindrical face ``s`` is the arc length, so a texture is not
+stretched), so that a texture moves and turns with the specimen it belongs to.
+A specimen is a box raised from the board towards the camera: a top face, flat
+or cylindrical, and four side faces.
 """
 
 from __future__ import annotations
@@ -86,7 +88,15 @@ class Material:
 
 @dataclass(frozen=True, eq=False)
 class Face:
-    """A planar rectangle of a scene.
+    """A rectangle of a scene, planar or bent about an axis along ``v`` (a cylindrical panel).
+
+    A cylindrical face of signed radius ``r`` holds the points
+    ``centre + r sin(s/r) u + r (cos(s/r) - 1) normal + t v``: it touches the
+    plane of ``centre``, ``u``, ``v`` along the line ``s = 0``, ``s`` is the arc
+    length, and its outward normal at ``s`` is ``cos(s/r) normal + sin(s/r) u``.
+    Its axis, ``centre - r normal``, lies behind the face when ``r > 0``
+    (convex: it bulges towards the viewer) and in front of it when ``r < 0``
+    (concave).
 
     Attributes
     ----------
@@ -98,13 +108,19 @@ class Face:
         Orthonormal in-plane axes; surface coordinates ``s``, ``t`` are metres
         along them.
     normal : (3,) ndarray
-        Outward unit normal; the face is seen only from this side.
+        Outward unit normal (at ``s = 0`` on a cylindrical face); the face is
+        seen only from this side.
     half_size : (float, float), metres
-        Half extents along ``u`` and ``v``; ``inf`` for an unbounded plane.
+        Half extents along ``u`` (arc length on a cylindrical face) and ``v``;
+        ``inf`` for an unbounded plane.
     material : Material
         What the face is made of.
     label : int
         Class index for a specimen's top face, -1 for any other face.
+    radius : float or None, metres
+        Signed radius of a cylindrical face: positive convex, negative concave;
+        None for a planar face. A cylindrical face is bounded and spans at most
+        a half turn (``half_size[0] <= pi/2 |radius|``).
     """
 
     name: str
@@ -115,6 +131,22 @@ class Face:
     half_size: tuple[float, float]
     material: Material
     label: int = -1
+    radius: float | None = None
+
+    def __post_init__(self):
+        """Refuse a radius that is zero or not finite, or bends the face beyond a half turn."""
+        if self.radius is not None and not (
+            np.isfinite(self.radius) and self.radius != 0 and self.half_size[0] <= np.pi / 2 * abs(self.radius)
+        ):
+            raise ValueError(
+                f"face {self.name}: radius must be finite and nonzero, and the face at most a half turn "
+                f"(half size {self.half_size[0]} m along u <= pi/2 |radius|), got radius {self.radius!r}"
+            )
+
+    @property
+    def curvature(self) -> float:
+        """Signed curvature ``1 / radius``, 1/m; 0 for a planar face."""
+        return 0.0 if self.radius is None else 1.0 / self.radius
 
 
 def keyed_rng(seed: int, *key: str | int) -> np.random.Generator:
@@ -206,6 +238,69 @@ class _MaterialMaps:
         return self.material.R0 * (1.0 + relative), self.material.n + offset
 
 
+def _plane_crossing(start: np.ndarray, along: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Where rays cross a planar face's plane, in the face's frame.
+
+    Parameters
+    ----------
+    start : (3,) ndarray, metres
+        The rays' origin relative to the face's centre, along its normal, ``u``, ``v``.
+    along : (N, 3) ndarray
+        The rays' unit directions along the same axes.
+
+    Returns
+    -------
+    reach, s, t : (N,) ndarray of float64, metres
+        Along the ray to the plane, and the surface coordinates there (inf or
+        NaN for rays parallel to the plane).
+    facing : (N,) ndarray of bool
+        The ray meets the plane's front side.
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):
+        reach = -start[0] / along[:, 0]
+        hit_s = start[1] + reach * along[:, 1]
+        hit_t = start[2] + reach * along[:, 2]
+    return reach, hit_s, hit_t, along[:, 0] < 0
+
+
+def _cylinder_crossings(start: np.ndarray, along: np.ndarray, curvature: float) -> list[tuple[np.ndarray, ...]]:
+    """Both crossings of rays with a cylindrical face's cylinder, in the face's frame (:class:`Face`).
+
+    Parameters
+    ----------
+    start, along
+        As in :func:`_plane_crossing`.
+    curvature : float, 1/m
+        Signed curvature of the face, nonzero.
+
+    Returns
+    -------
+    list of two (reach, s, t, facing)
+        As :func:`_plane_crossing`'s, for each root of the ray-cylinder
+        quadratic: ``s`` is the arc length from the line ``s = 0``; NaN where
+        the ray misses the cylinder.
+    """
+    radius = 1.0 / curvature
+    sign = np.sign(radius)
+    # the ray's origin relative to the axis, and the quadratic |origin + reach along - axis|^2 = radius^2 across it
+    normal, side = start[0] + radius, start[1]
+    quadratic = along[:, 0] * along[:, 0] + along[:, 1] * along[:, 1]
+    half_linear = normal * along[:, 0] + side * along[:, 1]
+    constant = normal * normal + side * side - radius * radius
+    with np.errstate(divide="ignore", invalid="ignore"):
+        root = np.sqrt(half_linear * half_linear - quadratic * constant)
+        q = -(half_linear + np.copysign(root, half_linear))  # the stable form of both roots
+        crossings = []
+        for reach in (q / quadratic, constant / q):
+            radial_n = normal + reach * along[:, 0]
+            radial_u = side + reach * along[:, 1]
+            # outward normal = radial / radius; its angle from the face's normal is s / radius
+            facing = sign * (along[:, 0] * radial_n + along[:, 1] * radial_u) < 0
+            hit_s = radius * np.arctan2(sign * radial_u, sign * radial_n)
+            crossings.append((reach, hit_s, start[2] + reach * along[:, 2], facing))
+    return crossings
+
+
 class Scene:
     """Faces with their materials' textures drawn for one seed.
 
@@ -233,6 +328,7 @@ class Scene:
         self._frames = np.stack([np.stack([face.normal, face.u, face.v]) for face in self.faces])
         self._centres = np.stack([face.centre for face in self.faces])
         self._half = np.array([face.half_size for face in self.faces], dtype=np.float64)
+        self._curvature = np.array([face.curvature for face in self.faces])
 
     def trace(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, ...]:
         """Nearest front-facing hit of rays from one origin.
@@ -258,20 +354,20 @@ class Scene:
         face = np.full(count, -1, dtype=np.int64)
         s = np.full(count, np.nan)
         t = np.full(count, np.nan)
-        faces = zip(self._frames, self._centres, self._half)
-        for index, (frame, centre, (half_u, half_v)) in enumerate(faces):
+        faces = zip(self._frames, self._centres, self._half, self._curvature)
+        for index, (frame, centre, (half_u, half_v), curvature) in enumerate(faces):
             along = directions @ frame.T  # (N, 3): components along normal, u, v
             start = (origin - centre) @ frame.T
-            with np.errstate(divide="ignore", invalid="ignore"):
-                reach = -start[0] / along[:, 0]
-                hit_s = start[1] + reach * along[:, 1]
-                hit_t = start[2] + reach * along[:, 2]
-            hit = (along[:, 0] < 0) & (reach > 0) & (reach < distance)
-            hit &= (np.abs(hit_s) <= half_u) & (np.abs(hit_t) <= half_v)
-            distance[hit] = reach[hit]
-            face[hit] = index
-            s[hit] = hit_s[hit]
-            t[hit] = hit_t[hit]
+            crossings = (
+                [_plane_crossing(start, along)] if curvature == 0 else _cylinder_crossings(start, along, curvature)
+            )
+            for reach, hit_s, hit_t, facing in crossings:
+                hit = facing & (reach > 0) & (reach < distance)
+                hit &= (np.abs(hit_s) <= half_u) & (np.abs(hit_t) <= half_v)
+                distance[hit] = reach[hit]
+                face[hit] = index
+                s[hit] = hit_s[hit]
+                t[hit] = hit_t[hit]
         return distance, face, s, t
 
     def materials(self, face: np.ndarray, s: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -296,18 +392,34 @@ class Scene:
             R0[on], n[on] = self._maps[index](s[on], t[on])
         return R0, n
 
-    def normals(self, face: np.ndarray) -> np.ndarray:
-        """Outward normals per point, (N, 3); NaN where ``face`` is -1."""
-        normals = np.append(self._frames[:, 0], np.full((1, 3), np.nan), axis=0)
-        return normals[face]
+    def normals(self, face: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """Outward unit normals at surface points.
+
+        Parameters
+        ----------
+        face : (N,) ndarray of int
+            Face index per point, -1 for none.
+        s : (N,) ndarray, metres
+            Surface coordinate along ``u`` (arc length on a cylindrical face).
+
+        Returns
+        -------
+        (N, 3) ndarray of float64
+            ``cos(s/r) normal + sin(s/r) u`` (``normal`` on a planar face); NaN
+            where ``face`` is -1.
+        """
+        frames = np.append(self._frames, np.full((1, 3, 3), np.nan), axis=0)[face]
+        angle = np.append(self._curvature, np.nan)[face] * s
+        return np.cos(angle)[:, None] * frames[:, 0] + np.sin(angle)[:, None] * frames[:, 1]
 
     def edge_distance(self, face: np.ndarray, s: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """In-plane distance of surface points from the nearest edge of their face.
+        """Distance of surface points from the nearest edge of their face, along the face.
 
         Returns
         -------
         (N,) ndarray of float64, metres
-            inf on unbounded faces, NaN where ``face`` is -1.
+            In surface coordinates (arc length across a cylindrical face); inf on
+            unbounded faces, NaN where ``face`` is -1.
         """
         half = np.append(self._half, np.full((1, 2), np.nan), axis=0)[face]
         return np.minimum(half[:, 0] - np.abs(s), half[:, 1] - np.abs(t))
@@ -335,13 +447,15 @@ class Geometry:
     s, t : ndarray, metres
         Surface coordinates of the point on its face.
     aoi : ndarray, radians
-        Angle of incidence ``arccos(|ray . normal|)``.
+        Angle of incidence ``arccos(|ray . normal|)``, with the surface's exact
+        normal at the point (:meth:`Scene.normals`).
     R0, n : ndarray
         Material at the point.
     label : ndarray of int16
         Class index of specimen top faces, -1 elsewhere.
     edge_distance : ndarray, metres
-        In-plane distance from the nearest edge of the face (inf if unbounded).
+        Distance along the face from its nearest edge (arc length across a
+        cylindrical face; inf if unbounded).
     """
 
     pose: np.ndarray
@@ -385,7 +499,7 @@ def render(scene: Scene, camera: PinholeCamera, pose: np.ndarray) -> Geometry:
     directions = world_rays(rays, pose).reshape(-1, 3)
     distance, face, s, t = scene.trace(pose[:3, 3], directions)
     distance[face < 0] = np.nan
-    cosine = np.abs(np.einsum("ij,ij->i", directions, scene.normals(face)))
+    cosine = np.abs(np.einsum("ij,ij->i", directions, scene.normals(face, s)))
     aoi = np.arccos(np.minimum(cosine, 1.0))
     R0, n = scene.materials(face, s, t)
     shape = camera.shape
@@ -438,8 +552,9 @@ def box_faces(
     rotation: float,
     material: Material,
     label: int,
+    radius: float | None = None,
 ) -> list[Face]:
-    """Make a square specimen raised from the board (Z = 0) towards the camera.
+    """Make a square specimen raised from the board (Z = 0) towards the camera, its top flat or cylindrical.
 
     Parameters
     ----------
@@ -458,27 +573,58 @@ def box_faces(
         Of all five faces.
     label : int
         Class index of the top face; the sides get -1.
+    radius : float or None, metres
+        Signed radius of a cylindrical top face (:class:`Face`), bent along its
+        ``u`` axis (the rotated world X): positive convex (its edges along the
+        axis drop by the sagitta), negative concave (they rise); None flat. The
+        top's centre stays at ``thickness`` and its edges ``size`` apart along
+        the surface, so the sides along the axis stand at the chord's ends,
+        as high as the edges. The two ends (across the axis) are rectangles up
+        to the lower of the top's centre and edges: the sliver between them and
+        the top's arc, at most the sagitta high, is left open.
 
     Returns
     -------
     list of Face
         The top face, then the four sides.
+
+    Raises
+    ------
+    ValueError
+        A convex top whose edges would reach the board, or a top bent beyond a half turn.
     """
     top = np.array([centre[0], centre[1], -thickness], dtype=np.float64)
     u = np.array([np.cos(rotation), np.sin(rotation), 0.0])
     v = np.array([-np.sin(rotation), np.cos(rotation), 0.0])
     half = size / 2.0
-    faces = [Face(f"{name}.top", top, u, v, -_EZ, (half, half), material, label)]
-    sides = [(u, v), (-u, -v), (v, -u), (-v, u)]
-    for k, (outward, along) in enumerate(sides):
+    top_face = Face(f"{name}.top", top, u, v, -_EZ, (half, half), material, label, radius)
+    # half chord, and how far the edges along the axis drop below the top's centre (0 when flat)
+    chord, sagitta = half, 0.0
+    if radius is not None:
+        chord, sagitta = radius * np.sin(half / radius), radius * (1.0 - np.cos(half / radius))
+    if sagitta >= thickness:
+        raise ValueError(
+            f"specimen {name}: a top of radius {radius} m and size {size} m drops {sagitta:.4f} m at its edges, "
+            f"more than its thickness {thickness} m; make it thicker or less curved"
+        )
+    edges, ends = thickness - sagitta, thickness - max(sagitta, 0.0)
+    # outward normal, u axis, distance from the top's centre, half extent along u, height above the board
+    sides = [
+        (u, v, chord, half, edges),
+        (-u, -v, chord, half, edges),
+        (v, -u, half, chord, ends),
+        (-v, u, half, chord, ends),
+    ]
+    faces = [top_face]
+    for k, (outward, along, offset, extent, height) in enumerate(sides):
         faces.append(
             Face(
                 name=f"{name}.side{k}",
-                centre=top + half * outward + 0.5 * thickness * _EZ,
+                centre=top + offset * outward + (thickness - 0.5 * height) * _EZ,
                 u=along,
                 v=_EZ,
                 normal=outward,
-                half_size=(half, thickness / 2.0),
+                half_size=(extent, height / 2.0),
                 material=material,
             )
         )
