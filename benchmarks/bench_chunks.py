@@ -40,7 +40,7 @@ def chain_parameters(config: Mapping, item) -> dict:
     return {
         **parameters.aoi_parameters(config),
         **parameters.feature_parameters(config),
-        "method": config["registration"]["method"],
+        **parameters.registration_parameters(config),
         "roi": None if item.roi is None else item.roi.as_mapping(),
     }
 

@@ -9,12 +9,14 @@ workflow's parameters (:func:`surffin.analysis.evaluation.evaluate_campaign`). B
 ideal camera; ``--imperfect`` adds those of a real camera's imperfections
 (:data:`~surffin.simulate.validation.IMPERFECT`: each alone, ``val-all`` together, ``val-bare-raw`` raw files
 without poses or intrinsics), whose truth is still the true geometry; the ceiling then shows what the true AOI
-and eq. 5 instrument function make of the imperfect data (the systematics stay in it). ``--imperfections NAMES``
+and the true instrument function make of the imperfect data (with the residual systematics, which the instrument
+truth records as their factor, ``systematic``). ``--imperfections NAMES``
 renders every chosen campaign with those imperfections instead of its own (names of
 :data:`~surffin.simulate.imperfections.STANDARD`, e.g. ``--campaigns tiny --imperfections all``, a quick end-to-end
 check). Printed per campaign and seed, then the mean and the range over the seeds:
 
-- ``cal %``: median relative error of the fitted ``k f(d, theta)`` over the crop;
+- ``cal %``: median relative error over the crop of the fitted ``k f(d, theta) c(d, theta)`` (``c``: the
+  calibration's residual correction, if any) against the true one (with the systematics);
 - ``R0 %``, ``n %``: median relative error of the smoothed features on the specimen interiors of every item;
   ``ceil R0``, ``ceil n``: the same for a fit of the same data with the true AOI and instrument function (what
   the data allow);

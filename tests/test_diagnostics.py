@@ -27,7 +27,7 @@ from surffin.errors import CalibrationError
 from surffin.grid import Roi
 from surffin.io.ingest import ingest_item
 from surffin.io.store import open_store
-from surffin.method.calibration import TERMS, calibration_set, instrument_function
+from surffin.method.calibration import TERMS, calibration_set, correction_factor, instrument_function
 from surffin.method.features import select_roi
 from surffin.method.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW
 from surffin.method.stages import process_item
@@ -286,13 +286,14 @@ def test_wall_fit_per_pixel_equals_least_squares(tiny):
     camp = surffin.read_campaign(root / "raw")
     calibration = open_store(first).load()
     observed, fits = wall_features(camp, camp.calibration.wall, {"first": calibration}, aoi=AOI)
-    # the reflectance of one view: I / (k f) by hand from the cube's own AOI
+    # the reflectance of one view: I / (k f c) by hand from the cube's own AOI
     view = camp.read_view(camp.calibration.wall[3])
     rows, columns = camp.crop.slices
     coef = calibration["coef"].values[:, rows, columns]
     distance = np.where(view.valid, np.linalg.norm(np.nan_to_num(view.xyz), axis=-1), np.nan)[rows, columns]
     aoi = observed["aoi"].values[3]
-    by_hand = view.intensity[rows, columns] / (calibration.attrs["scale_k"] * instrument_function(coef, distance, aoi))
+    instrument = instrument_function(coef, distance, aoi) * correction_factor(calibration["correction"], distance, aoi)
+    by_hand = view.intensity[rows, columns] / (calibration.attrs["scale_k"] * instrument)
     np.testing.assert_allclose(observed["reflectance"].values[0, 3], by_hand, rtol=2e-6)
     for y, x in ((0, 0), (7, 31), (25, 50), (39, 59)):
         r, theta = observed["reflectance"].values[0, :, y, x], observed["aoi"].values[:, y, x]

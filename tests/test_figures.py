@@ -16,7 +16,14 @@ from PIL import Image
 import surffin
 from surffin.grid import Roi
 from surffin.io.store import write_store
-from surffin.method.calibration import SAMPLE_QUANTITIES, TERMS, calibrate, instrument_function, reflectance
+from surffin.method.calibration import (
+    SAMPLE_QUANTITIES,
+    TERMS,
+    calibrate,
+    correction_factor,
+    instrument_function,
+    reflectance,
+)
 from surffin.method.geometry import angle_of_incidence
 from surffin.method.roughness import roughness_relation
 from surffin.pipeline.analyses import run_figures
@@ -426,7 +433,9 @@ def test_calibrate_keeps_raw_wall_observations_with_their_reflectance(tiny_campa
     files = [views[str(stem)].intensity[y, x] for stem, y, x in zip(wall_view, wall_y, wall_x)]
     np.testing.assert_array_equal(obs.sel(quantity="intensity").values, files)
     intensity, distance, aoi = (obs.sel(quantity=q).values for q in SAMPLE_QUANTITIES[:3])
+    # the instrument: eq. 5's f times the calibration's residual correction c
     f = instrument_function(ds["coef"].values[:, wall_y, wall_x], distance, aoi)
+    f = f * np.asarray(correction_factor(ds["correction"], distance, aoi))
     np.testing.assert_allclose(obs.sel(quantity="reflectance").values, intensity / (ds.attrs["scale_k"] * f))
     # the wall image: the view with the smallest median AOI over the crop, reflectance as reflectance() gives it
     geometry = {
@@ -443,7 +452,9 @@ def test_calibrate_keeps_raw_wall_observations_with_their_reflectance(tiny_campa
     image = ds["wall_image"]
     assert image.attrs["view"] == min(medians, key=medians.get)
     layer = {q: image.sel(quantity=q, drop=True).expand_dims(view=[image.attrs["view"]]) for q in SAMPLE_QUANTITIES}
-    public = reflectance(layer["intensity"], layer["distance"], layer["aoi"], ds["coef"], ds.attrs["scale_k"])
+    public = reflectance(
+        layer["intensity"], layer["distance"], layer["aoi"], ds["coef"], ds.attrs["scale_k"], ds["correction"]
+    )
     np.testing.assert_allclose(layer["reflectance"].values, public.values, rtol=1e-6)
 
 

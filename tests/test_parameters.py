@@ -8,7 +8,7 @@ import yaml
 
 from surffin.analysis.evaluation import evaluate_campaign
 from surffin.method.calibration import calibrate
-from surffin.method.stages import aoi_stage, features_stage, labels_stage
+from surffin.method.stages import aoi_stage, features_stage, labels_stage, registration_stage
 from surffin.pipeline import parameters
 
 SCHEMA = parameters.DEFAULT_CONFIG.parent.parent / "workflow" / "schemas" / "config.schema.yaml"
@@ -19,6 +19,7 @@ SCHEMA = parameters.DEFAULT_CONFIG.parent.parent / "workflow" / "schemas" / "con
     [
         (parameters.calibration_parameters, calibrate),
         (parameters.aoi_parameters, aoi_stage),
+        (parameters.registration_parameters, registration_stage),
         (parameters.feature_parameters, features_stage),
         (parameters.label_parameters, labels_stage),
         (parameters.evaluation_parameters, evaluate_campaign),
@@ -47,3 +48,11 @@ def test_values_come_from_the_config_with_their_units():
     assert parameters.feature_parameters(config)["min_spread"] == pytest.approx(math.pi / 6)
     assert parameters.aoi_parameters(config)["max_window"] == 60
     assert parameters.calibration_parameters(config)["window"] == 9
+    config["registration"]["max_pose_correction_mm"] = 4.0
+    assert parameters.registration_parameters(config)["max_translation"] == pytest.approx(0.004)
+
+
+def test_default_registration_config_gives_the_stage_defaults():
+    defaults = inspect.signature(registration_stage).parameters
+    for keyword, value in parameters.registration_parameters(parameters.read_config()).items():
+        assert value == pytest.approx(defaults[keyword].default), keyword

@@ -43,6 +43,7 @@ from surffin.io.files import write_text
 from surffin.method.calibration import (
     TERMS,
     calibration_diagnostics,
+    correction_factor,
     instrument_function,
     observe_view,
     with_reflectance,
@@ -79,6 +80,8 @@ _GRID_PERCENTILES = (1, 99)
 _GRID_SIZE = 7
 # Pixels whose instrument functions on the grid are compared at a time (a few MB of temporaries).
 _GRID_BLOCK = 4096
+# What multiplies eq. 5's f in a calibration (its residual correction) or an instrument truth (its systematics).
+_FACTORS = ("correction", "systematic")
 # Variables of the specimens compared between calibrations.
 _SPECIMEN_VARIABLES = ("reflectance", "R0", "n", "R0_fit", "n_fit")
 #: The stores of a specimen that :func:`process_specimens` reads, by name: the stage that writes each.
@@ -316,11 +319,17 @@ def compare_calibrations(first: xr.Dataset, second: xr.Dataset, grid, region: Ro
     distance, aoi = (np.ravel(part) for part in np.broadcast_arrays(*grid))
     # f and k f pixel block by pixel block: their temporaries stay small; the differences are those of the
     # whole (pixel, grid) arrays, in the same order
+    # the instrument is f c: c the calibration's residual correction, or the truth's rendered systematics
+    ca, cb = (
+        next((np.asarray(correction_factor(ds[name], distance, aoi)) for name in _FACTORS if name in ds), 1.0)
+        for ds in (first, second)
+    )
     pixels, points = a.shape[1], distance.size
     f_differences, kf_differences, worst = np.empty(pixels * points), np.empty(pixels * points), np.empty(pixels)
     for start in range(0, pixels, _GRID_BLOCK):
         block, flat = slice(start, start + _GRID_BLOCK), slice(start * points, (start + _GRID_BLOCK) * points)
-        fa, fb = instrument_function(a[:, block], distance, aoi), instrument_function(b[:, block], distance, aoi)
+        fa = instrument_function(a[:, block], distance, aoi) * ca
+        fb = instrument_function(b[:, block], distance, aoi) * cb
         f_differences[flat], kf_differences[flat] = _relative(fa, fb), _relative(ka * fa, kb * fb)
         largest = np.subtract(fa, fb)  # |200 (fa - fb) / (fa + fb)|, in place
         largest *= 200.0
@@ -422,7 +431,8 @@ def wall_features(
         values[:, ~view.valid[rows, columns]] = np.nan
         angles[index] = values[2]
         for which, (coef, scale) in enumerate(zip(coefs, scales)):
-            reflectance[which, index] = with_reflectance(values, coef, scale, axis=0)[3]
+            correction = calibrations[names[which]].get("correction")
+            reflectance[which, index] = with_reflectance(values, coef, scale, axis=0, correction=correction)[3]
     coords = {
         "calibration": names,
         "view": [Path(path).stem for path in views],
@@ -759,7 +769,10 @@ def calibration_report(
             raise StoreError(
                 f"{path}: the calibration store keeps no wall observations (wall_obs); refit it with this surffin"
             )
-        calibrations[name] = ds[["coef", "r2", "status", "wall_obs"]].load()
+        # what the diagnostics read: the fit, its wall observations and the residual correction (the reflectance's c)
+        calibrations[name] = ds[
+            ["coef", "r2", "status", "wall_obs", *(["correction"] if "correction" in ds else [])]
+        ].load()
     aoi = _calibration_aoi(calibrations["first"], calibration)
     region = camp.crop
     report = {

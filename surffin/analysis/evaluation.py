@@ -5,8 +5,9 @@ stage parameters it is given (the workflow's come from :mod:`surffin.pipeline.pa
 the calibration, every item's chain, the training set of its specimens and the scenes' labels; then it scores
 them against the simulator's truth (``<campaign>-truth``). Beside every item's
 features it fits the same data with the true AOI and the true instrument
-function, registered with the same maps (the ceiling: what the data allow), so
-the gap between the two stays visible. ``benchmarks/bench_validation.py`` prints
+function (with the residual systematics the camera was rendered with, when the
+truth records them), registered with the same maps (the ceiling: what the data
+allow), so the gap between the two stays visible. ``benchmarks/bench_validation.py`` prints
 it over the validation campaigns and seeds; the test suite asserts lower bounds
 on small campaigns.
 """
@@ -23,12 +24,19 @@ import xarray as xr
 from surffin.io.campaign import read_campaign, read_truth
 from surffin.io.ingest import ingest_item
 from surffin.io.store import open_store
-from surffin.method.calibration import calibrate, instrument_function, reflectance
+from surffin.method.calibration import calibrate, correction_factor, instrument_function, reflectance
 from surffin.method.classify import score, training_set
 from surffin.method.registration import register
 from surffin.method.stages import features_stage, labels_stage, process_item
 
-__all__ = ["interior", "relative_errors", "calibration_error", "evaluate_campaign", "risk_coverage"]
+__all__ = [
+    "interior",
+    "relative_errors",
+    "instrument_response",
+    "calibration_error",
+    "evaluate_campaign",
+    "risk_coverage",
+]
 
 #: Distance (m) and angles of incidence (deg) at which :func:`calibration_error` compares instrument functions.
 CALIBRATION_CHECK = (0.45, (0.0, 20.0, 40.0))
@@ -59,32 +67,51 @@ def relative_errors(features: xr.Dataset, truth: xr.Dataset) -> dict[str, np.nda
     return out
 
 
-def calibration_error(calibration: xr.Dataset, instrument: xr.Dataset, crop) -> float:
-    """Median relative error over the crop of the fitted ``k f(d, theta)`` against the true one.
+def instrument_response(ds: xr.Dataset, factor: str, crop, distance: float, aoi: float) -> np.ndarray:
+    """``k f(d, theta) c(d, theta)`` of every crop pixel at one distance (m) and AOI (rad).
 
-    At :data:`CALIBRATION_CHECK`'s distance, the worst of its angles: what
-    every reflectance is divided by.
+    ``ds`` is a calibration (``factor="correction"``, its residual correction) or
+    an instrument truth (``factor="systematic"``, the rendered systematics);
+    without that variable c = 1.
     """
     rows, columns = crop.slices
-    fitted = calibration["coef"].transpose("term", "y", "x").values[:, rows, columns]
-    true = instrument["coef"].transpose("term", "y", "x").values[:, rows, columns]
+    coef = ds["coef"].transpose("term", "y", "x").values[:, rows, columns]
+    d, theta = np.full(coef.shape[1:], distance), np.full(coef.shape[1:], aoi)
+    c = correction_factor(ds[factor], d, theta) if factor in ds else 1.0
+    return ds.attrs["scale_k"] * instrument_function(coef, d, theta) * c
+
+
+def calibration_error(calibration: xr.Dataset, instrument: xr.Dataset, crop) -> float:
+    """Median relative error over the crop of the fitted ``k f(d, theta) c(d, theta)`` against the true one.
+
+    At :data:`CALIBRATION_CHECK`'s distance, the worst of its angles: what
+    every reflectance is divided by. The fitted side includes the calibration's
+    residual correction, the true side the rendered systematics
+    (:func:`instrument_response`).
+    """
     distance, angles = CALIBRATION_CHECK
     worst = 0.0
-    for degrees in angles:
-        theta = np.full(fitted.shape[1:], np.deg2rad(degrees))
-        d = np.full(fitted.shape[1:], distance)
-        ratio = (calibration.attrs["scale_k"] * instrument_function(fitted, d, theta)) / (
-            instrument.attrs["scale_k"] * instrument_function(true, d, theta)
+    for theta in np.deg2rad(angles):
+        ratio = instrument_response(calibration, "correction", crop, distance, theta) / instrument_response(
+            instrument, "systematic", crop, distance, theta
         )
         worst = max(worst, float(np.nanmedian(np.abs(ratio - 1.0))))
     return worst
 
 
 def _ceiling_features(item, ingest, chain, instrument, truth, feature_params) -> xr.Dataset:
-    """Features of the same data with the true AOI and instrument function, registered with the same maps."""
+    """Features of the same data with the true AOI and instrument function, registered with the same maps.
+
+    The true instrument function includes the rendered systematics where the truth records them.
+    """
     aoi = truth["aoi_view"].sel(y=ingest.y, x=ingest.x).astype(np.float32).where(ingest["valid"])
     refl = reflectance(
-        ingest["intensity"], chain["aoi"]["distance"], aoi, instrument["coef"], instrument.attrs["scale_k"]
+        ingest["intensity"],
+        chain["aoi"]["distance"],
+        aoi,
+        instrument["coef"],
+        instrument.attrs["scale_k"],
+        instrument.get("systematic"),
     )
     refl = refl.where(ingest["valid"]).astype(np.float32)
     registered = register(

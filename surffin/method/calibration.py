@@ -20,6 +20,19 @@ and D are ~-0.99 correlated and their estimates noisy, while the angular respons
 of a camera varies smoothly over its field of view (the paper's Table 2: C and D
 vary by 1.8 % and 1.4 % over the image). Measurements: ``docs/performance.md``.
 
+A real camera has residual systematics of a few % that eq. 5 cannot represent
+(e.g. a time-of-flight camera's cyclic error in distance). :func:`fit_correction`
+learns what eq. 5 leaves from the wall views themselves: the ratios ``y / f`` of
+random wall observations to their pixel's fitted f, pooled over the sensor, are
+smoothed into a factor ``c(d, theta)`` on a grid of distance and AOI (a penalised
+least-squares fit whose smoothness is chosen by cross-validation over the wall
+views); :func:`reflectance` then gives ``R = I / (k f c)``. Each pixel's eq. 5 fit
+takes up a part of the factor that depends on the distances and angles it saw,
+so :func:`calibrate` alternates once: eq. 5 is refitted to ``y / c`` and ``c``
+fitted again to the new ratios. The coefficients keep eq. 5's form and gauge;
+``c`` is a separate, recorded factor (``residual_correction=False``: the
+paper's plain method).
+
 Pixels without a fit are NaN with a status code (:data:`CALIBRATION_STATUS`),
 never a number.
 """
@@ -30,6 +43,7 @@ import logging
 import math
 import os
 from collections.abc import Callable, Collection, Iterable, Mapping
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -54,7 +68,11 @@ __all__ = [
     "CALIBRATION_STATUS",
     "DEFAULT_MIN_OBS",
     "DEFAULT_ANGULAR_SMOOTHING",
+    "DEFAULT_RESIDUAL_CORRECTION",
+    "CORRECTION_DIMS",
     "instrument_function",
+    "correction_factor",
+    "fit_correction",
     "Observation",
     "WallStatistics",
     "fit_calibration",
@@ -77,6 +95,10 @@ DEFAULT_MIN_OBS = 12
 #: Default smoothing of the angular factor (C, D) over the sensor: a Gaussian whose standard
 #: deviation is this fraction of the sensor diagonal (24 px on 640 x 480).
 DEFAULT_ANGULAR_SMOOTHING = 0.03
+#: Default of :func:`calibrate`'s ``residual_correction``: learn the factor eq. 5 leaves.
+DEFAULT_RESIDUAL_CORRECTION = True
+#: Dimensions of the residual correction's grid: distance (m) and angle of incidence (rad).
+CORRECTION_DIMS = ("correction_distance", "correction_aoi")
 
 #: Quantities of the raw wall observations a calibration keeps (the ``quantity`` coordinate of
 #: ``sample_obs``, ``wall_obs`` and ``wall_image``): intensity (camera units), distance (m), AOI
@@ -115,6 +137,18 @@ _MAD_SIGMA = 1.4826
 _SAMPLE_ROWS = (0.25, 0.75)
 _SAMPLE_COLUMNS = (1 / 6, 0.5, 5 / 6)
 _WALL_SAMPLES = 3000
+# Residual correction (:func:`fit_correction`): grid steps in distance (m) and AOI (rad); random
+# wall observations kept for it (all views together); cross-validation folds of wall views and
+# candidate penalties; observations of a node for it to be inside the support; the ratios kept
+# (gross outliers, e.g. a mixed pixel, are left out); the ridge towards 1 (relative to the
+# mean observations of a node) that keeps the system regular.
+_CORRECTION_STEP = (0.01, math.radians(1.0))
+_CORRECTION_SAMPLES = 2**20
+_CORRECTION_FOLDS = 5
+_CORRECTION_PENALTIES = tuple(10.0 ** np.arange(-1.0, 6.01, 0.5))
+_CORRECTION_MIN_COUNT = 10
+_CORRECTION_RATIOS = (0.5, 2.0)
+_CORRECTION_RIDGE = 1e-6
 
 
 def instrument_function(coef, distance, aoi):
@@ -354,19 +388,22 @@ def _best_ab(cd: np.ndarray, G: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.concatenate([A[None], B[None], cd])
 
 
-def _start(m_hat: np.ndarray, G: np.ndarray, b: np.ndarray, shape: np.ndarray | None) -> np.ndarray:
-    """Start p (4, n): the rank-one projection of m_hat, or ``shape`` = (C, D) (2,) if its cost is lower.
+def _start(m_hat: np.ndarray, G: np.ndarray, b: np.ndarray, shapes: Iterable[np.ndarray]) -> np.ndarray:
+    """Start p (4, n): of the rank-one projection of m_hat and the (C, D) ``shapes`` (2,) or (2, n), the least cost.
 
     m_hat (6 free products) is noisier than the rank-one fit (4 parameters);
     the sensor's typical (C, D) is a safe second candidate because the angular
-    shape varies by a few % across the sensor (:func:`fit_calibration`, step 2).
+    shape varies by a few % across the sensor (:func:`fit_calibration`, step 2),
+    and a previous fit of each pixel a third.
     """
     p = _best_ab(_rank_one_shape(m_hat), G, b)
-    if shape is None:
-        return p
-    other = _best_ab(np.repeat(np.reshape(shape, (2, 1)), p.shape[1], axis=1), G, b)
-    cost, other_cost = _cost(p, m_hat, G)[0], _cost(other, m_hat, G)[0]
-    return np.where((other_cost < cost) | ~np.isfinite(cost), other, p)
+    cost = _cost(p, m_hat, G)[0]
+    for shape in shapes:
+        other = _best_ab(np.broadcast_to(np.reshape(shape, (2, -1)), (2, p.shape[1])), G, b)
+        other_cost = _cost(other, m_hat, G)[0]
+        better = (other_cost < cost) | ~np.isfinite(cost)
+        p, cost = np.where(better, other, p), np.where(better, other_cost, cost)
+    return p
 
 
 def _products(p: np.ndarray) -> np.ndarray:
@@ -449,7 +486,10 @@ def _gauss_newton(p, m_hat, G, floor) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 
 def _fit_block(
-    moments: np.ndarray, min_obs: int, shape: np.ndarray | None = None, angular: np.ndarray | None = None
+    moments: np.ndarray,
+    min_obs: int,
+    shapes: tuple[np.ndarray, ...] = (),
+    angular: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fit the pixels of one block.
 
@@ -458,8 +498,9 @@ def _fit_block(
     moments : (22, n) ndarray of float64
         :attr:`WallStatistics.moments` of n pixels.
     min_obs : int
-    shape : (2,) ndarray, optional
-        Typical (C, D) of the sensor: a second start candidate (:func:`_start`).
+    shapes : tuple of ndarray, optional
+        Further start candidates (:func:`_start`): (C, D) (2,) for every pixel
+        (the sensor's typical) or (2, n) per pixel (a previous fit; NaN: none).
     angular : (2, n) ndarray, optional
         Fixed (C, D) of each pixel: only (A, B) are fitted (exactly, for them);
         NaN leaves a pixel unfitted (status 3).
@@ -487,7 +528,8 @@ def _fit_block(
     index, G, b, m_hat = index[regular], G[..., regular], b[:, regular], m_hat[:, regular]
     energy = np.einsum("kn,kn->n", m_hat, b)
     if angular is None:
-        p, cost, converged = _gauss_newton(_start(m_hat, G, b, shape), m_hat, G, _FLOOR * np.abs(energy))
+        candidates = [shape if shape.ndim == 1 else shape[:, index] for shape in shapes]
+        p, cost, converged = _gauss_newton(_start(m_hat, G, b, candidates), m_hat, G, _FLOOR * np.abs(energy))
     else:
         p = _best_ab(angular[:, index], G, b)
         cost, converged = _cost(p, m_hat, G)[0], np.ones(index.size, dtype=bool)
@@ -515,7 +557,11 @@ def _smooth_angular(coef: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def fit_calibration(
-    stats: WallStatistics, *, min_obs: int = DEFAULT_MIN_OBS, angular_smoothing: float = DEFAULT_ANGULAR_SMOOTHING
+    stats: WallStatistics,
+    *,
+    min_obs: int = DEFAULT_MIN_OBS,
+    angular_smoothing: float = DEFAULT_ANGULAR_SMOOTHING,
+    start: np.ndarray | None = None,
 ) -> xr.Dataset:
     """Fit the instrument function of every pixel from its wall statistics.
 
@@ -532,6 +578,10 @@ def fit_calibration(
         (C, D). 0 keeps every pixel's own fit (the paper). Per pixel, C and D
         are ~-0.99 correlated and noisy, while the angular response varies
         smoothly over the field of view (module docstring).
+    start : (5, H, W) ndarray, optional
+        Coefficients of a previous fit of the same pixels (e.g. before the
+        residual correction): each pixel's (C, D) is a further start candidate
+        of step 2.
 
     Returns
     -------
@@ -549,12 +599,12 @@ def fit_calibration(
     1. the unconstrained linear least squares ``m_hat = G^-1 b`` on the
        Jacobi-scaled system; pixels whose scaled ``G`` is (nearly) singular, i.e.
        whose views do not separate the effects of distance and angle, are rejected;
-    2. a start of rank one with E = 1: the (C, D) of the leading singular pair of
-       the 2x3 matrix ``M_hat``, or the sensor's typical (C, D) (a fit of the
-       statistics pooled over all pixels) where that has the lower cost, each with
-       its exact (A, B) (a 2x2 solve in the metric of ``G``); with few or poorly
-       spread views ``m_hat`` is noisy and its projection alone may start in the
-       wrong valley;
+    2. a start of rank one with E = 1: of the (C, D) of the leading singular pair
+       of the 2x3 matrix ``M_hat``, the sensor's typical (C, D) (a fit of the
+       statistics pooled over all pixels) and the pixel's (C, D) of ``start`` when
+       given, the one of least cost, each with its exact (A, B) (a 2x2 solve in
+       the metric of ``G``); with few or poorly spread views ``m_hat`` is noisy
+       and its projection alone may start in the wrong valley;
     3. Gauss-Newton on ``p = (A, B, C, D)`` minimising
        ``Q(p) = (m(p) - m_hat)^T G (m(p) - m_hat)``, which equals the sum of
        squared residuals minus the constant ``SSR(m_hat)``; computing it from the
@@ -591,10 +641,12 @@ def fit_calibration(
     status = np.empty(flat.shape[1], dtype=np.int8)
     pooled = np.sum(flat, axis=1, where=flat[0] >= min_obs, keepdims=True)
     typical = _fit_block(pooled, int(min_obs))[0][2:4, 0]
-    shape = typical if np.isfinite(typical).all() else None
-    for start in range(0, flat.shape[1], _BLOCK):
-        block = slice(start, start + _BLOCK)
-        coef[:, block], r2[block], status[block] = _fit_block(flat[:, block], int(min_obs), shape)
+    shapes = [typical] if np.isfinite(typical).all() else []
+    previous = None if start is None else np.asarray(start, dtype=np.float64).reshape(5, -1)[2:4]
+    for first in range(0, flat.shape[1], _BLOCK):
+        block = slice(first, first + _BLOCK)
+        candidates = shapes if previous is None else [*shapes, previous[:, block]]
+        coef[:, block], r2[block], status[block] = _fit_block(flat[:, block], int(min_obs), tuple(candidates))
     if angular_smoothing > 0:
         sigma = angular_smoothing * math.hypot(height, width)
         angular = _smooth_angular(coef.reshape(5, height, width), sigma).reshape(2, -1)
@@ -640,10 +692,252 @@ def fit_calibration(
     )
 
 
-def reference_scale(coef: np.ndarray, views: Iterable[Observation], roi: Roi, reflectance: float) -> tuple[float, dict]:
+def _correction_nodes(low: float, high: float, step: float) -> np.ndarray:
+    """At least two nodes ``step`` apart, on multiples of ``step``, covering [low, high]."""
+    first, last = math.floor(low / step), math.ceil(high / step)
+    return np.arange(first, max(last, first + 1) + 1) * step
+
+
+def _roughness_penalty(shape: tuple[int, int]):
+    """Sparse ``P = sum over both axes of D2^T D2`` of a grid ``shape``: squared second differences."""
+    import scipy.sparse as sp
+
+    penalty = sp.csr_matrix((shape[0] * shape[1],) * 2)
+    for axis, size in enumerate(shape):
+        if size < 3:
+            continue
+        second = sp.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(size - 2, size))
+        eye = sp.identity(shape[1 - axis])
+        along = second.T @ second
+        penalty = penalty + (sp.kron(along, eye) if axis == 0 else sp.kron(eye, along))
+    return penalty.tocsc()
+
+
+def _smooth_grid(count: np.ndarray, total: np.ndarray, penalty, weight: float) -> np.ndarray:
+    """Node values c (flat) minimising ``sum n (mean - c)^2 + weight c^T P c`` plus a tiny ridge towards 1.
+
+    ``count`` and ``total`` (flat) are the observations and the sum of their
+    ratios at each node; the ridge (``_CORRECTION_RIDGE`` of the mean count of the
+    occupied nodes) keeps nodes far from any data from being undetermined.
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    occupied = count[count > 0]
+    ridge = _CORRECTION_RIDGE * (occupied.mean() if occupied.size else 1.0)
+    system = (sp.diags(count + ridge) + weight * penalty).tocsc()
+    # symmetric positive definite: no pivoting needed (and 4x faster than partial pivoting)
+    factor = splu(system, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    return factor.solve(total + ridge)
+
+
+def fit_correction(
+    ratio, distance, aoi, group, *, folds: int = _CORRECTION_FOLDS, penalty: float | None = None
+) -> xr.Dataset:
+    """Fit the smooth factor ``c(d, theta)`` that eq. 5 leaves, from residual ratios of the wall pooled over the sensor.
+
+    The ratios ``y / f`` (wall observations over their pixel's fitted
+    instrument function) are pooled on a grid of distance (1 cm) and AOI (1 deg),
+    each at its nearest node, and smoothed by penalised least squares, a 2-D
+    Whittaker smoother: ``c`` minimises ``sum_obs (ratio - c(node))^2 +
+    lambda sum (second differences of c along both axes)^2``. ``lambda`` is
+    chosen by cross-validation over groups of observations (the wall views,
+    assigned at random to ``folds`` folds): of the candidates 10^-1..10^6 (every
+    decade, then the half decades beside the best), the one with the least
+    squared error on the held-out views. The support is the nodes with at least
+    ``_CORRECTION_MIN_COUNT`` (10) observations; every other node takes the value
+    of the nearest node of the support, and :func:`correction_factor` clamps
+    beyond the grid: the factor is never extrapolated.
+
+    Parameters
+    ----------
+    ratio : (N,) array_like
+        ``y / f`` of wall observations, ``y = I / cos(theta)``; non-finite values
+        and gross outliers (outside [0.5, 2]) are left out.
+    distance : (N,) array_like, metres
+    aoi : (N,) array_like, radians
+    group : (N,) array_like of int
+        The wall view of each observation (the unit left out by the cross-validation).
+    folds : int, optional
+        Cross-validation folds (at most the number of groups, at least 2).
+    penalty : float, optional
+        ``lambda``, instead of choosing it by cross-validation (e.g. the one
+        chosen for a previous fit of similar ratios).
+
+    Returns
+    -------
+    Dataset
+        On :data:`CORRECTION_DIMS`, with coordinates ``correction_distance`` (m)
+        and ``correction_aoi`` (rad): ``correction``, the factor c (attrs
+        ``penalty``, ``cv_penalties``, ``cv_scores`` (mean squared held-out
+        error; empty when ``penalty`` is given), ``folds``, ``n_samples``, ``support_distance`` and
+        ``support_aoi`` (ranges of the support's nodes), ``outside``: what
+        happens beyond the support); ``correction_count``: the observations
+        pooled at each node.
+
+    Raises
+    ------
+    CalibrationError
+        Fewer than two groups, or no node with enough observations.
+    """
+    from scipy.ndimage import distance_transform_edt
+
+    ratio, distance, aoi = (np.asarray(a, dtype=np.float64).ravel() for a in (ratio, distance, aoi))
+    group = np.asarray(group).ravel()
+    low, high = _CORRECTION_RATIOS
+    with np.errstate(invalid="ignore"):
+        keep = np.isfinite(distance) & np.isfinite(aoi) & (ratio >= low) & (ratio <= high)
+    ratio, distance, aoi, group = ratio[keep], distance[keep], aoi[keep], group[keep]
+    groups, group = np.unique(group, return_inverse=True)
+    if groups.size < 2:
+        raise CalibrationError(
+            f"the residual correction needs wall observations from at least 2 views, got {groups.size}"
+        )
+    n_folds = int(min(max(folds, 2), groups.size))
+    fold = np.random.default_rng(0).permutation(groups.size)[group] % n_folds
+    (d_step, t_step), coords = _CORRECTION_STEP, []
+    index = []
+    for values, step in ((distance, d_step), (aoi, t_step)):
+        nodes = _correction_nodes(values.min(), values.max(), step)
+        coords.append(nodes)
+        index.append(np.rint((values - nodes[0]) / step).astype(np.int64))
+    shape = (coords[0].size, coords[1].size)
+    flat = np.ravel_multi_index(index, shape)
+    size = shape[0] * shape[1]
+    count = np.bincount(fold * size + flat, minlength=n_folds * size).reshape(n_folds, size).astype(np.float64)
+    total = np.bincount(fold * size + flat, weights=ratio, minlength=n_folds * size).reshape(n_folds, size)
+    all_count, all_total = count.sum(axis=0), total.sum(axis=0)
+    support = (all_count >= _CORRECTION_MIN_COUNT).reshape(shape)
+    if not support.any():
+        raise CalibrationError(
+            f"no node of the residual correction's grid has {_CORRECTION_MIN_COUNT} wall observations "
+            f"({ratio.size} usable ratios)"
+        )
+    roughness = _roughness_penalty(shape)
+    scores: dict[int, float] = {}
+
+    def score(candidate: int) -> None:
+        # held-out sum of (ratio - c)^2, less the constant sum of ratio^2
+        if candidate in scores or not 0 <= candidate < len(_CORRECTION_PENALTIES):
+            return
+        scores[candidate] = 0.0
+        for k in range(n_folds):
+            c = _smooth_grid(all_count - count[k], all_total - total[k], roughness, _CORRECTION_PENALTIES[candidate])
+            scores[candidate] += float(np.sum(count[k] * c * c - 2.0 * c * total[k]))
+
+    if penalty is None:
+        for candidate in range(0, len(_CORRECTION_PENALTIES), 2):
+            score(candidate)
+        coarse = min(scores, key=scores.get)
+        score(coarse - 1)
+        score(coarse + 1)
+        penalty = _CORRECTION_PENALTIES[min(scores, key=scores.get)]
+    c = _smooth_grid(all_count, all_total, roughness, penalty).reshape(shape)
+    nearest = distance_transform_edt(~support, return_distances=False, return_indices=True)
+    c = c[tuple(nearest)]
+    rows, columns = np.nonzero(support)
+    # the held-out error per observation: the scores lack the constant sum of squared ratios
+    squares = float(np.sum(ratio * ratio))
+    attrs = {
+        "units": "1",
+        "long_name": "residual correction of the instrument function: R = I / (scale_k f c)",
+        "penalty": float(penalty),
+        "cv_penalties": [float(_CORRECTION_PENALTIES[candidate]) for candidate in sorted(scores)],
+        "cv_scores": [(scores[candidate] + squares) / ratio.size for candidate in sorted(scores)],
+        "folds": n_folds,
+        "n_samples": int(ratio.size),
+        "support_distance": [float(coords[0][rows.min()]), float(coords[0][rows.max()])],
+        "support_aoi": [float(coords[1][columns.min()]), float(coords[1][columns.max()])],
+        "outside": (
+            f"nodes with fewer than {_CORRECTION_MIN_COUNT} wall observations take the value of the nearest node "
+            f"with them; beyond the grid, the value at its edge (clamped, never extrapolated)"
+        ),
+    }
+    return xr.Dataset(
+        {
+            "correction": (CORRECTION_DIMS, c, attrs),
+            "correction_count": (
+                CORRECTION_DIMS,
+                all_count.reshape(shape).astype(np.int64),
+                {"units": "1", "long_name": "wall observations pooled at the node"},
+            ),
+        },
+        coords={
+            CORRECTION_DIMS[0]: (CORRECTION_DIMS[0], coords[0], {"units": "m", "long_name": "distance"}),
+            CORRECTION_DIMS[1]: (CORRECTION_DIMS[1], coords[1], {"units": "rad", "long_name": "angle of incidence"}),
+        },
+    )
+
+
+def _bilinear(table: np.ndarray, d_nodes: np.ndarray, t_nodes: np.ndarray, distance, aoi) -> np.ndarray:
+    """Bilinear interpolation of ``table`` (nd, nt) on regular nodes, clamped to the grid; NaN where an input is."""
+    distance, aoi = np.broadcast_arrays(np.asarray(distance, dtype=np.float64), np.asarray(aoi, dtype=np.float64))
+    finite = np.isfinite(distance) & np.isfinite(aoi)
+    corners, weights = [], []
+    for nodes, values in ((d_nodes, distance), (t_nodes, aoi)):
+        position = np.clip(np.where(finite, (values - nodes[0]) / (nodes[1] - nodes[0]), 0.0), 0, nodes.size - 1)
+        lower = np.minimum(np.floor(position), nodes.size - 2).astype(np.intp)
+        corners.append(lower)
+        weights.append(position - lower)
+    (i, j), (u, v) = corners, weights
+    near = (1 - v) * table[i, j] + v * table[i, j + 1]
+    far = (1 - v) * table[i + 1, j] + v * table[i + 1, j + 1]
+    value = (1 - u) * near + u * far
+    return np.where(finite, value, np.nan)
+
+
+def correction_factor(correction: xr.DataArray, distance, aoi):
+    """Look up the residual correction ``c(d, theta)`` of :func:`fit_correction`.
+
+    Bilinear between the grid's nodes; beyond the grid, the value at its edge
+    (the distance and AOI are clamped to the grid's range): never extrapolated.
+
+    Parameters
+    ----------
+    correction : DataArray on :data:`CORRECTION_DIMS`
+        Node values on equally spaced ``correction_distance`` (m) and
+        ``correction_aoi`` (rad) coordinates (a calibration store's ``correction``).
+    distance : ndarray or DataArray, metres
+    aoi : ndarray or DataArray, radians
+
+    Returns
+    -------
+    ndarray or DataArray of float64
+        The broadcast of ``distance`` and ``aoi``; NaN where either is NaN.
+        Lazy on dask.
+
+    Raises
+    ------
+    ValueError
+        ``correction`` is not on :data:`CORRECTION_DIMS`, or its nodes are not
+        equally spaced and increasing.
+    """
+    if not isinstance(correction, xr.DataArray) or set(correction.dims) != set(CORRECTION_DIMS):
+        shown = getattr(correction, "dims", type(correction).__name__)
+        raise ValueError(f"correction must be a DataArray on {CORRECTION_DIMS}, got {shown!r}")
+    table = correction.transpose(*CORRECTION_DIMS).values.astype(np.float64)
+    nodes = [correction[dim].values.astype(np.float64) for dim in CORRECTION_DIMS]
+    for dim, values in zip(CORRECTION_DIMS, nodes, strict=True):
+        steps = np.diff(values)
+        if values.size < 2 or not (steps > 0).all() or not np.allclose(steps, steps[0], rtol=1e-6):
+            raise ValueError(f"correction's {dim} nodes must be at least 2, increasing and equally spaced")
+    if isinstance(distance, xr.DataArray) or isinstance(aoi, xr.DataArray):
+        return xr.apply_ufunc(
+            partial(_bilinear, table, *nodes), distance, aoi, dask="parallelized", output_dtypes=[np.float64]
+        )
+    return _bilinear(table, *nodes, distance, aoi)
+
+
+def reference_scale(
+    coef: np.ndarray,
+    views: Iterable[Observation],
+    roi: Roi,
+    reflectance: float,
+    correction: xr.DataArray | None = None,
+) -> tuple[float, dict]:
     """Compute the scale k of eq. 6 from views of a reference panel of known reflectance.
 
-    On every panel pixel, ``I / (f(d, theta) cos(theta))`` is the panel's
+    On every panel pixel, ``I / (f(d, theta) c(d, theta) cos(theta))`` is the panel's
     reflectance relative to the calibration wall (f is fitted to the wall's
     ``I / cos(theta)``): its median over the roi pixels of all views is the
     intensity ratio r of panel and wall under the same conditions, and
@@ -659,6 +953,8 @@ def reference_scale(coef: np.ndarray, views: Iterable[Observation], roi: Roi, re
         Panel pixels, sensor coordinates, in every view.
     reflectance : float
         The panel's known reflectance, in (0, 1].
+    correction : DataArray, optional
+        The residual correction c (:func:`fit_correction`); default none (c = 1).
 
     Returns
     -------
@@ -684,6 +980,8 @@ def reference_scale(coef: np.ndarray, views: Iterable[Observation], roi: Roi, re
             *(array[rows, cols] for array in (view.intensity, view.distance, view.aoi, view.valid))
         )
         f = instrument_function(local, distance, aoi) * np.cos(aoi)
+        if correction is not None:
+            f = f * correction_factor(correction, distance, aoi)
         with np.errstate(invalid="ignore"):
             ok &= f > 0
         if not ok.any():
@@ -760,7 +1058,8 @@ class _WallSamples:
     random usable pixels of the crop spread evenly over the views, and the full
     images of one view, the most perpendicular so far (smallest median AOI over
     the usable pixels of the crop; paper Fig. 10). :meth:`dataset` adds their
-    reflectance once the calibration is fitted.
+    reflectance once the calibration is fitted. A larger random sample (``pool``
+    observations over all views) serves the residual correction (:meth:`pool`).
 
     Parameters
     ----------
@@ -768,17 +1067,21 @@ class _WallSamples:
         The campaign's usable sensor region.
     n_views : int
         Wall views that will be added.
+    pool : int, optional
+        Random usable observations of the crop to keep over all views for
+        :meth:`pool` (at least those of the figures).
     seed : int, optional
         Seed of the random pixel choice.
     """
 
-    def __init__(self, crop: Roi, n_views: int, seed: int = 0):
+    def __init__(self, crop: Roi, n_views: int, pool: int = 0, seed: int = 0):
         (top, bottom), (left, right) = crop.y, crop.x
         rows = [top + int(f * (bottom - top)) for f in _SAMPLE_ROWS]
         columns = [left + int(f * (right - left)) for f in _SAMPLE_COLUMNS]
         self.pixels = np.array([(row, column) for row in rows for column in columns]).T
         self.crop = crop
-        self.per_view = -(-_WALL_SAMPLES // max(1, n_views))
+        self.shown = -(-_WALL_SAMPLES // max(1, n_views))
+        self.per_view = max(self.shown, -(-pool // max(1, n_views)))
         self.rng = np.random.default_rng(seed)
         self.views: list[str] = []
         self.probes: list[np.ndarray] = []
@@ -793,7 +1096,7 @@ class _WallSamples:
         inside = np.zeros(shape, dtype=bool)
         inside[self.crop.slices] = True
         candidates = np.flatnonzero(ok & inside.ravel())
-        chosen = np.sort(self.rng.choice(candidates, min(self.per_view, candidates.size), replace=False))
+        chosen = self.rng.choice(candidates, min(self.per_view, candidates.size), replace=False)
         self.views.append(stem)
         self.probes.append(values[:, np.ravel_multi_index(self.pixels, shape)].T)
         self.random.append((chosen, values[:, chosen]))
@@ -801,7 +1104,16 @@ class _WallSamples:
         if self.image is None or median < self.image[1]:
             self.image = (stem, median, values.reshape(3, *shape))
 
-    def dataset(self, coef: np.ndarray, scale_k: float) -> xr.Dataset:
+    def pool(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the random observations of all views: flat sensor index (N,), view index (N,), values (3, N).
+
+        The values are intensity, distance (m) and AOI (rad).
+        """
+        pixels = np.concatenate([index for index, _ in self.random])
+        views = np.repeat(np.arange(len(self.random)), [index.size for index, _ in self.random])
+        return pixels, views, np.concatenate([values for _, values in self.random], axis=1)
+
+    def dataset(self, coef: np.ndarray, scale_k: float, correction: xr.DataArray | None = None) -> xr.Dataset:
         """Return the kept observations with their reflectance under the fitted calibration.
 
         Parameters
@@ -809,6 +1121,8 @@ class _WallSamples:
         coef : (5, H, W) ndarray of float64
             The fitted coefficients on the sensor grid.
         scale_k : float
+        correction : DataArray, optional
+            The residual correction (:func:`fit_correction`).
 
         Returns
         -------
@@ -823,8 +1137,10 @@ class _WallSamples:
         width = coef.shape[2]
         probes = np.stack(self.probes, axis=1)
         rows, columns = self.pixels
-        chosen = np.concatenate([index for index, _ in self.random])
-        random = np.concatenate([values for _, values in self.random], axis=1)
+        # the first self.shown of each view's random choice, in sensor order
+        shown = [np.argsort(index[: self.shown]) for index, _ in self.random]
+        chosen = np.concatenate([index[order] for (index, _), order in zip(self.random, shown, strict=True)])
+        random = np.concatenate([values[:, order] for (_, values), order in zip(self.random, shown, strict=True)], 1)
         wall_y, wall_x = np.divmod(chosen, width)
         stem, _, image = self.image
         units = {"units": "intensity: 1, distance: m, aoi: rad, reflectance: 1"}
@@ -832,17 +1148,17 @@ class _WallSamples:
             {
                 "sample_obs": (
                     ("sample_pixel", "view", "quantity"),
-                    with_reflectance(probes, coef[:, rows, columns][:, :, None], scale_k, axis=-1),
+                    with_reflectance(probes, coef[:, rows, columns][:, :, None], scale_k, -1, correction),
                     {**units, "long_name": "wall observations of the sample pixels in every wall view"},
                 ),
                 "wall_obs": (
                     ("wall_sample", "quantity"),
-                    with_reflectance(random, coef[:, wall_y, wall_x], scale_k, axis=0).T,
+                    with_reflectance(random, coef[:, wall_y, wall_x], scale_k, 0, correction).T,
                     {**units, "long_name": "wall observations at random pixels of the crop"},
                 ),
                 "wall_image": (
                     ("quantity", "y", "x"),
-                    with_reflectance(image, coef, scale_k, axis=0).astype(np.float32),
+                    with_reflectance(image, coef, scale_k, 0, correction).astype(np.float32),
                     {**units, "long_name": "the most perpendicular wall view", "view": stem},
                 ),
             },
@@ -853,13 +1169,15 @@ class _WallSamples:
                 "sample_x": ("sample_pixel", columns, {"long_name": "sensor column"}),
                 "wall_y": ("wall_sample", wall_y, {"long_name": "sensor row"}),
                 "wall_x": ("wall_sample", wall_x, {"long_name": "sensor column"}),
-                "wall_view": ("wall_sample", np.repeat(self.views, [index.size for index, _ in self.random])),
+                "wall_view": ("wall_sample", np.repeat(self.views, [order.size for order in shown])),
             },
         )
 
 
-def with_reflectance(values: np.ndarray, coef: np.ndarray, scale_k: float, axis: int) -> np.ndarray:
-    """Observations (intensity, distance, aoi along ``axis``) with their reflectance ``I / (k f)`` appended.
+def with_reflectance(
+    values: np.ndarray, coef: np.ndarray, scale_k: float, axis: int, correction: xr.DataArray | None = None
+) -> np.ndarray:
+    """Observations (intensity, distance, aoi along ``axis``) with their reflectance ``I / (k f c)`` appended.
 
     Parameters
     ----------
@@ -872,6 +1190,8 @@ def with_reflectance(values: np.ndarray, coef: np.ndarray, scale_k: float, axis:
         The calibration's scale k.
     axis : int
         The axis of the quantities.
+    correction : DataArray, optional
+        The residual correction c (:func:`fit_correction`); default none (c = 1).
 
     Returns
     -------
@@ -881,6 +1201,8 @@ def with_reflectance(values: np.ndarray, coef: np.ndarray, scale_k: float, axis:
     """
     intensity, distance, aoi = np.moveaxis(values, axis, 0)
     f = instrument_function(coef, distance, aoi)
+    if correction is not None:
+        f = f * correction_factor(correction, distance, aoi)
     with np.errstate(invalid="ignore", divide="ignore"):
         reflectance = np.where(f > 0, intensity / (scale_k * f), np.nan)
     return np.concatenate([values, np.expand_dims(reflectance, axis)], axis=axis)
@@ -977,6 +1299,7 @@ def calibrate(
     max_window: int = DEFAULT_MAX_WINDOW,
     min_obs: int = DEFAULT_MIN_OBS,
     angular_smoothing: float = DEFAULT_ANGULAR_SMOOTHING,
+    residual_correction: bool = DEFAULT_RESIDUAL_CORRECTION,
     exclude: Collection[str] = (),
     progress: Callable[[int, int], None] | None = None,
 ) -> xr.Dataset:
@@ -985,9 +1308,11 @@ def calibrate(
     The wall views are read one at a time (AOI and distance on the full sensor
     by :mod:`surffin.method.geometry`) and added to :class:`WallStatistics`, so memory
     does not grow with their number; then every pixel is fitted
-    (:func:`fit_calibration`), up to :data:`~surffin.method.noise.NOISE_VIEWS` wall
-    views are read again for the intensity noise model (:mod:`surffin.method.noise`)
-    and the reference panel views give the scale k (:func:`reference_scale`).
+    (:func:`fit_calibration`), the residual correction is fitted to random wall
+    observations kept while they streamed by (:func:`fit_correction`), up to
+    :data:`~surffin.method.noise.NOISE_VIEWS` wall views are read again for the
+    intensity noise model (:mod:`surffin.method.noise`) and the reference panel
+    views give the scale k (:func:`reference_scale`).
 
     Parameters
     ----------
@@ -1003,11 +1328,20 @@ def calibrate(
         Fewest wall observations of a pixel for a fit.
     angular_smoothing : float, optional
         Smoothing of the angular factor over the sensor (:func:`fit_calibration`).
+    residual_correction : bool, optional
+        Learn the factor ``c(d, theta)`` that eq. 5 leaves (:func:`fit_correction`),
+        from about 10^6 random wall observations of the crop kept while the
+        views stream by, in one alternation: c from their ratios to the plain
+        eq. 5 fit, eq. 5 refitted per pixel to ``I / c`` (the wall views are
+        read a second time), c again from the ratios to that fit; the scale k
+        and the reflectance use it (``R = I / (k f c)``). False: the paper's
+        plain eq. 5, fitted to ``I`` itself. The noise model is the same either way.
     exclude : collection of str, optional
         Stems of wall views left out of the fit (e.g. held out for validation).
     progress : callable (done, total), optional
-        Called after each view read (wall, the wall views of the noise model
-        again, then reference views).
+        Called after each view read (wall; the wall views again, all of them
+        with ``residual_correction``, else those of the noise model; then
+        reference views).
 
     Returns
     -------
@@ -1017,7 +1351,8 @@ def calibrate(
         ``sample_obs`` (every view of six pixels spread over the crop),
         ``wall_obs`` (about 3000 random pixels of the crop over all views) and
         ``wall_image`` (the most perpendicular view), along ``quantity`` =
-        :data:`SAMPLE_QUANTITIES`; the wall's intensity noise model
+        :data:`SAMPLE_QUANTITIES`; with ``residual_correction``, ``correction``
+        and ``correction_count`` of :func:`fit_correction`; the wall's intensity noise model
         (``noise_variance`` per ``noise_intensity``, :mod:`surffin.method.noise`); attrs ``scale_k``,
         ``reference_reflectance``, ``reference`` (details of
         :func:`reference_scale`), ``diagnostics``
@@ -1053,7 +1388,8 @@ def calibrate(
         )
     wall = [path for path in calibration.wall if path.stem not in excluded]
     noise_views = wall[:: max(1, -(-len(wall) // NOISE_VIEWS))]
-    total = len(wall) + len(noise_views) + len(reference.views)
+    total = 2 * len(wall) if residual_correction else len(wall) + len(noise_views)
+    total += len(reference.views)
     step = max(1, total // 10)
     done = 0
 
@@ -1067,7 +1403,7 @@ def calibrate(
 
     aoi = {"window": window, "jump": jump, "max_window": max_window}
     stats = WallStatistics((campaign.camera.height, campaign.camera.width))
-    samples = _WallSamples(campaign.crop, len(wall))
+    samples = _WallSamples(campaign.crop, len(wall), pool=_CORRECTION_SAMPLES if residual_correction else 0)
     saturated = {}
     for path in wall:
         view = observe_view(campaign, path, aoi)
@@ -1076,20 +1412,60 @@ def calibrate(
         samples.add(view, path.stem)
         advance(path)
     ds = fit_calibration(stats, min_obs=min_obs, angular_smoothing=angular_smoothing)
-    try:
-        diagnostics = calibration_diagnostics(ds)
-    except CalibrationError as exc:
-        raise CalibrationError(
-            f"{campaign.path}: wall folder {folders['wall']}: {exc}; the wall views must cover each pixel at several "
-            f"distances and angles, at least {min_obs} times"
-        ) from exc
 
+    def checked(ds: xr.Dataset) -> dict:
+        try:
+            return calibration_diagnostics(ds)
+        except CalibrationError as exc:
+            raise CalibrationError(
+                f"{campaign.path}: wall folder {folders['wall']}: {exc}; the wall views must cover each pixel at "
+                f"several distances and angles, at least {min_obs} times"
+            ) from exc
+
+    def residuals(coef: np.ndarray, penalty: float | None = None) -> xr.Dataset:
+        pixels, views, (intensity, distance, angle) = samples.pool()
+        f = instrument_function(coef.reshape(5, -1)[:, pixels], distance, angle)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = intensity / (f * np.cos(angle))
+        try:
+            return fit_correction(ratio, distance, angle, views, penalty=penalty)
+        except CalibrationError as exc:
+            raise CalibrationError(
+                f"{campaign.path}: wall folder {folders['wall']}: {exc}; add wall views, or calibrate with "
+                f"residual_correction=False"
+            ) from exc
+
+    diagnostics = checked(ds)
+    # the noise model flat-fields with the plain fit (its 3 x 3 ratios cancel any smooth factor)
+    plain = ds["coef"].values
     noise = NoiseStatistics()
-    for path in noise_views:
+    correction = first = None
+    if residual_correction:
+        first = residuals(plain)["correction"]
+        refit = WallStatistics(stats.shape)
+    for path in wall if residual_correction else noise_views:
         view = observe_view(campaign, path, aoi)
-        expected = instrument_function(ds["coef"].values, view.distance, view.aoi) * np.cos(view.aoi)
-        noise.add(view.intensity, view.intensity / expected, view.valid)
+        if path in noise_views:
+            expected = instrument_function(plain, view.distance, view.aoi) * np.cos(view.aoi)
+            noise.add(view.intensity, view.intensity / expected, view.valid)
+        if residual_correction:
+            factor = correction_factor(first, view.distance, view.aoi)
+            refit.add(view.intensity / factor, view.distance, view.aoi, view.valid)
         advance(path)
+    if residual_correction:
+        ds = fit_calibration(refit, min_obs=min_obs, angular_smoothing=angular_smoothing, start=plain)
+        diagnostics = checked(ds)
+        # the smoothness cross-validated on the ratios to the plain fit
+        ds = ds.merge(residuals(ds["coef"].values, first.attrs["penalty"]))
+        ds["correction"].attrs.update({key: first.attrs[key] for key in ("cv_penalties", "cv_scores")})
+        correction = ds["correction"]
+        log.info(
+            "calibration: residual correction %.4f..%.4f over %d wall observations (penalty %g)",
+            float(correction.min()),
+            float(correction.max()),
+            correction.attrs["n_samples"],
+            correction.attrs["penalty"],
+        )
 
     def panel_views():
         for path in reference.views:
@@ -1098,7 +1474,9 @@ def calibrate(
             yield view
             advance(path)
 
-    scale_k, details = reference_scale(ds["coef"].values, panel_views(), reference.roi, reference.reflectance)
+    scale_k, details = reference_scale(
+        ds["coef"].values, panel_views(), reference.roi, reference.reflectance, correction
+    )
     log.info(
         "calibration: %d of %d pixels fitted (status counts %s), mean R2 %.4f, scale_k %.5g",
         diagnostics["n_fitted"],
@@ -1107,11 +1485,17 @@ def calibrate(
         diagnostics["mean_r2"],
         scale_k,
     )
-    parameters = {**aoi, "min_obs": min_obs, "angular_smoothing": angular_smoothing, "exclude": sorted(excluded)}
+    parameters = {
+        **aoi,
+        "min_obs": min_obs,
+        "angular_smoothing": angular_smoothing,
+        "residual_correction": bool(residual_correction),
+        "exclude": sorted(excluded),
+    }
     inputs = {str(path.relative_to(campaign.root)): describe_file(path) for path in (*wall, *reference.views)}
     settings = {str(path.relative_to(campaign.root)): read_settings(path) for path in (*wall, *reference.views)}
     return (
-        ds.merge(samples.dataset(ds["coef"].values, scale_k))
+        ds.merge(samples.dataset(ds["coef"].values, scale_k, correction))
         .merge(noise.dataset())
         .assign_attrs(
             scale_k=scale_k,
@@ -1128,9 +1512,14 @@ def calibrate(
 
 
 def reflectance(
-    intensity: xr.DataArray, distance: xr.DataArray, aoi: xr.DataArray, coef: xr.DataArray, scale_k: float
+    intensity: xr.DataArray,
+    distance: xr.DataArray,
+    aoi: xr.DataArray,
+    coef: xr.DataArray,
+    scale_k: float,
+    correction: xr.DataArray | None = None,
 ) -> xr.DataArray:
-    """Calibrated absolute reflectance ``R = I / (k f(d, theta))`` (paper eq. 2).
+    """Calibrated absolute reflectance ``R = I / (k f(d, theta) c(d, theta))`` (paper eq. 2).
 
     Parameters
     ----------
@@ -1143,12 +1532,16 @@ def reflectance(
         selected by the ``y``/``x`` coordinates of ``intensity``.
     scale_k : float
         The calibration's scale k.
+    correction : DataArray on :data:`CORRECTION_DIMS`, optional
+        The calibration's residual correction c (:func:`fit_correction`;
+        clamped beyond its grid, :func:`correction_factor`); default none, c = 1
+        (the paper's eq. 2).
 
     Returns
     -------
     (view, y, x) DataArray
         Reflectance at the observed AOI, NaN where an input is NaN or
-        ``f <= 0``. Lazy when an input is dask-backed.
+        ``f c <= 0``. Lazy when an input is dask-backed.
 
     Raises
     ------
@@ -1180,6 +1573,8 @@ def reflectance(
             f"of the same camera on its full sensor"
         ) from exc
     f = instrument_function(local, distance, aoi)
+    if correction is not None:
+        f = f * correction_factor(correction, distance, aoi)
     out = (intensity / (scale_k * f)).where(f > 0).transpose(*intensity.dims)
     out.name = "reflectance"
     out.attrs = {"units": "1", "long_name": "absolute reflectance at the observed angle of incidence"}

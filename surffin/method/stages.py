@@ -89,11 +89,20 @@ def aoi_stage(
 def reflectance_stage(ingest: xr.Dataset, aoi: xr.Dataset, calibration: xr.Dataset) -> xr.Dataset:
     """Calibrated reflectance of every view on its own grid (paper eq. 2), and its relative noise.
 
+    The calibration's residual correction, where it has one, divides it too: ``R = I / (k f c)``.
+
     ``reflectance_noise`` is each pixel's relative noise from its intensity and
     the calibration's noise model (:mod:`surffin.method.noise`); a calibration
     without one gives none.
     """
-    r = reflectance(ingest["intensity"], aoi["distance"], aoi["aoi"], calibration["coef"], calibration.attrs["scale_k"])
+    r = reflectance(
+        ingest["intensity"],
+        aoi["distance"],
+        aoi["aoi"],
+        calibration["coef"],
+        calibration.attrs["scale_k"],
+        calibration.get("correction"),
+    )
     ds = xr.Dataset({"reflectance": r.where(ingest["valid"])}, attrs=_item_attrs(ingest))
     if "noise_variance" in calibration:
         # where the reflectance is: not on invalid pixels, nor on mixed ones (no AOI, no distance)

@@ -22,6 +22,7 @@ __all__ = [
     "read_config",
     "calibration_parameters",
     "aoi_parameters",
+    "registration_parameters",
     "feature_parameters",
     "label_parameters",
     "evaluation_parameters",
@@ -47,9 +48,19 @@ KEYWORDS = {
             "max_window": "aoi_max_window",
             "min_obs": "min_observations",
             "angular_smoothing": "angular_smoothing",
+            "residual_correction": "residual_correction",
         },
     ),
     "aoi": ("aoi", {"window": "window", "jump": "jump", "max_window": "max_window"}),
+    "registration": (
+        "registration",
+        {
+            "method": "method",
+            "refine": "refine_poses",
+            "max_translation": "max_pose_correction_mm",
+            "max_rotation": "max_pose_correction_deg",
+        },
+    ),
     "features": (
         "features",
         {
@@ -85,6 +96,12 @@ def calibration_parameters(config: Mapping) -> dict:
 def aoi_parameters(config: Mapping) -> dict:
     """Keyword arguments of :func:`surffin.method.stages.aoi_stage`."""
     return _keywords(config, "aoi")
+
+
+def registration_parameters(config: Mapping) -> dict:
+    """Keyword arguments of :func:`surffin.method.stages.registration_stage` (without the item's roi)."""
+    keywords = _keywords(config, "registration")
+    return keywords | {"max_translation": keywords["max_translation"] / 1000.0}
 
 
 def feature_parameters(config: Mapping) -> dict:

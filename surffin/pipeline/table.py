@@ -62,10 +62,10 @@ def _chain(name: str, version: int) -> Stage:
 STAGES = {
     stage.name: stage
     for stage in (
-        Stage("calibration", calibrate, ("views",), "calibration.zarr", 5),
+        Stage("calibration", calibrate, ("views",), "calibration.zarr", 6),
         Stage("ingest", ingest_item, ("views",), "ingest/{item}.zarr", 3),
         _chain("aoi", 5),
-        _chain("reflectance", 4),
+        _chain("reflectance", 5),
         _chain("registration", 4),
         _chain("features", 5),
         Stage("training", training_set, ("features",), "training.zarr", 4),
@@ -80,7 +80,7 @@ STAGES = {
             calibration_report,
             ("calibration", "views", "ingest", "aoi", "registered", "features"),
             "diagnostics",
-            3,
+            4,
         ),
         Stage("sensitivity", write_sensitivity, (), "sensitivity", 3),
         Stage("comparison", write_comparison, ("summary", "diagnostics", "sensitivity"), "paper-comparison.md", 3),

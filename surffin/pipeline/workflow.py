@@ -19,7 +19,7 @@ from surffin.io.campaign import Calibration, Campaign, read_campaign
 from surffin.io.viewfile import view_sidecars
 from surffin.method.calibration import calibration_set, check_calibration
 from surffin.method.roughness import MIN_SPECIMENS
-from surffin.pipeline.parameters import aoi_parameters, feature_parameters
+from surffin.pipeline.parameters import aoi_parameters, feature_parameters, registration_parameters
 from surffin.pipeline.table import output_path
 
 __all__ = ["Plan"]
@@ -105,8 +105,8 @@ class Plan:
         }
 
     def registration_parameters(self, name: str) -> dict:
-        """Return an item's registration parameters: the configured method and the item's roi."""
-        return {"method": self.config["registration"]["method"], "roi": self.roi(name)}
+        """Return an item's registration parameters: the configured ones and the item's roi."""
+        return {**registration_parameters(self.config), "roi": self.roi(name)}
 
     def feature_parameters(self, name: str) -> dict:
         """Return an item's feature parameters: its roi and the configured ones."""
@@ -208,7 +208,7 @@ class Plan:
     def diagnostics_item_parameters(self) -> dict:
         """Return the registration, AOI and feature parameters the diagnostics process the specimens with."""
         config = self.config
-        return {"method": config["registration"]["method"], **aoi_parameters(config), **feature_parameters(config)}
+        return {**registration_parameters(config), **aoi_parameters(config), **feature_parameters(config)}
 
     # --- roughness, figures, comparison ------------------------------------------------------
 

@@ -341,7 +341,9 @@ def simulate_campaign(
     if imperfections.any:
         parameters["imperfections"] = dataclasses.asdict(imperfections)
     write_store(
-        instrument_truth(instrument, preset).assign_attrs(provenance("simulate", parameters)),
+        instrument_truth(instrument, preset, imperfections.systematics).assign_attrs(
+            provenance("simulate", parameters)
+        ),
         truth / "instrument.zarr",
     )
     run = _Run(

@@ -2,7 +2,9 @@
 
 ``instrument.zarr`` holds the instrument function in the gauge E = 1 that a
 perfect calibration on the wall finds (so ``I = scale_k f'(d, theta) R`` holds
-exactly without noise) and the un-normalised coefficients (``I = gain f R``).
+exactly without noise) and the un-normalised coefficients (``I = gain f R``);
+with residual systematics, also their factor tabulated over distance and angle
+of incidence (then ``I = scale_k f'(d, theta) s(d, theta) R``).
 Each item's store holds, on the full sensor grid of its reference view, the
 surface's R0, n, AOI, distance, class label and face, and for every view the
 AOI and where each pixel's surface point lies in the reference image (the
@@ -15,6 +17,7 @@ import numpy as np
 import xarray as xr
 
 from surffin.simulate.camera import PinholeCamera, to_camera
+from surffin.simulate.imperfections import systematic_factor
 from surffin.simulate.instrument import TERMS, Instrument
 from surffin.simulate.plan import Acquisition
 from surffin.simulate.presets import Preset
@@ -25,6 +28,10 @@ __all__ = ["instrument_truth", "item_truth", "reference_coordinates", "scene_tru
 # A reference-view ray must meet its surface point within this distance for the
 # point to count as visible in the reference view, metres.
 _VISIBILITY_TOLERANCE = 1e-6
+# Nodes of the systematic factor's table: distances (m) and angles of incidence (rad), fine
+# enough for bilinear interpolation to stay within 1e-4 of the factor.
+_SYSTEMATIC_DISTANCES = np.round(np.arange(0.05, 3.0 + 1e-9, 0.005), 6)
+_SYSTEMATIC_AOIS = np.deg2rad(np.arange(0.0, 90.0 + 1e-9, 0.5))
 
 
 def reference_coordinates(
@@ -162,7 +169,7 @@ def item_truth(
     )
 
 
-def instrument_truth(instrument: Instrument, preset: Preset) -> xr.Dataset:
+def instrument_truth(instrument: Instrument, preset: Preset, systematics: float = 0.0) -> xr.Dataset:
     """Build the instrument truth store.
 
     Parameters
@@ -170,18 +177,24 @@ def instrument_truth(instrument: Instrument, preset: Preset) -> xr.Dataset:
     instrument : Instrument
     preset : Preset
         Supplies the wall's and the reference panel's reflectance.
+    systematics : float, optional
+        Amplitude of the residual systematics the views were rendered with
+        (:attr:`~surffin.simulate.imperfections.Imperfections.systematics`); 0: none.
 
     Returns
     -------
     Dataset
         ``coef`` (term, y, x): A', B', C', D', E' = 1 of
         :meth:`Instrument.calibration`; ``coef_raw`` (term, y, x): A..E with
-        ``I = gain f R``; attrs ``scale_k``, ``gain``, ``rho_wall``,
-        ``rho_reference``.
+        ``I = gain f R``; with systematics, ``systematic`` (correction_distance,
+        correction_aoi): their factor :func:`~surffin.simulate.imperfections.systematic_factor`
+        on a grid of distances 0.05-3 m and angles 0-90 deg, in the layout of a
+        calibration's ``correction`` (``I = scale_k f' s R``); attrs ``scale_k``,
+        ``gain``, ``rho_wall``, ``rho_reference``, ``systematics``.
     """
     coef, scale_k = instrument.calibration(preset.wall.R0)
     dims = ("term", "y", "x")
-    return xr.Dataset(
+    ds = xr.Dataset(
         {
             "coef": (dims, coef, _attrs("1", "instrument function coefficients, gauge E = 1: I = scale_k f R")),
             "coef_raw": (dims, instrument.coef, _attrs("1", "instrument function coefficients: I = gain f R")),
@@ -192,6 +205,25 @@ def instrument_truth(instrument: Instrument, preset: Preset) -> xr.Dataset:
             "gain": instrument.gain,
             "rho_wall": preset.wall.R0,
             "rho_reference": preset.reference.R0,
+            "systematics": float(systematics),
             "model": "f = (A + B/d^2)(C theta^2 + D theta + E), d in m, theta in rad",
         },
+    )
+    if not systematics:
+        return ds
+    table = systematic_factor(_SYSTEMATIC_DISTANCES[:, None], _SYSTEMATIC_AOIS[None, :], systematics)
+    return ds.assign(
+        systematic=xr.DataArray(
+            table,
+            dims=("correction_distance", "correction_aoi"),
+            coords={
+                "correction_distance": ("correction_distance", _SYSTEMATIC_DISTANCES, _attrs("m", "distance")),
+                "correction_aoi": ("correction_aoi", _SYSTEMATIC_AOIS, _attrs("rad", "angle of incidence")),
+            },
+            attrs=_attrs(
+                "1",
+                "residual instrument systematics: I = scale_k f s R",
+                outside="the nodes' range covers every rendered view; clamped to the edge beyond it",
+            ),
+        )
     )
