@@ -18,6 +18,7 @@ from surffin.io.campaign import read_campaign
 from surffin.io.ingest import build_cube, ingest_item
 from surffin.io.store import open_store, write_store
 from surffin.io.viewfile import View
+from surffin.method import registration
 from surffin.method.camera_model import CameraModel, fit_camera_model, model_residual
 from surffin.method.registration import register, registration_error, registration_maps, warp
 from surffin.method.stages import registration_stage
@@ -593,6 +594,28 @@ def test_clouds_tell_a_symmetric_relief_by_its_texture(stepped):
         assert registered.attrs["diagnostics"][f"v{index:02d}"]["candidates"] >= 2
         assert np.nanmedian(error[index]) < 0.1
         assert np.nanpercentile(error[index], 95) < 0.5
+
+
+def test_clouds_search_again_a_view_whose_texture_disagrees(stepped, monkeypatch):
+    # a wrong first pick for view 2 (3 cm off, its texture deviation 10x the right one's) is told by its
+    # texture, an outlier among the item's views, and searched again from the other views
+    chosen, picks = registration._chosen, []
+
+    def wrong_first(candidates, refine, index, where):
+        transform, info = chosen(candidates, refine, index, where)
+        picks.append(index)
+        if picks.count(2) == 1 and index == 2:
+            shifted = transform.copy()
+            shifted[:3, 3] += (0.03, 0.0, 0.0)
+            return shifted, {**info, "texture_deviation": 10 * info["texture_deviation"]}
+        return transform, info
+
+    monkeypatch.setattr(registration, "_chosen", wrong_first)
+    maps = registration_maps(stepped.ingest.drop_vars("pose"), method="clouds")
+    assert picks.count(2) == 2 and maps.attrs["diagnostics"]["v02"]["searched_again"]
+    assert maps.attrs["diagnostics"]["v02"]["aligned_with"] == "v01"
+    error = map_error(maps, stepped.truth_x, stepped.truth_y)
+    assert np.nanmedian(error[2]) < 0.1 and "searched_again" not in maps.attrs["diagnostics"]["v01"]
 
 
 def test_clouds_need_relief(planar):

@@ -66,7 +66,7 @@ STAGES = {
         Stage("ingest", ingest_item, ("views",), "ingest/{item}.zarr", 3),
         _chain("aoi", 5),
         _chain("reflectance", 5),
-        _chain("registration", 4),
+        _chain("registration", 5),
         _chain("features", 5),
         Stage("training", training_set, ("features",), "training.zarr", 4),
         Stage("labels", labels_stage, ("features", "training"), "labels/{scene}.zarr", 4),
