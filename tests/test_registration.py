@@ -618,6 +618,22 @@ def test_clouds_search_again_a_view_whose_texture_disagrees(stepped, monkeypatch
     assert np.nanmedian(error[2]) < 0.1 and "searched_again" not in maps.attrs["diagnostics"]["v01"]
 
 
+def test_clouds_keep_the_first_pose_when_the_search_again_finds_none(stepped, monkeypatch):
+    chosen, picks = registration._chosen, []
+
+    def outlier_then_none(candidates, refine, index, where):
+        picks.append(index)
+        if index == 2 and picks.count(2) == 2:
+            raise RegistrationError(f"{where}: none refined")
+        transform, info = chosen(candidates, refine, index, where)
+        return transform, {**info, "texture_deviation": info["texture_deviation"] * (10 if index == 2 else 1)}
+
+    monkeypatch.setattr(registration, "_chosen", outlier_then_none)
+    maps = registration_maps(stepped.ingest.drop_vars("pose"), method="clouds")
+    assert picks.count(2) == 2 and "searched_again" not in maps.attrs["diagnostics"]["v02"]
+    assert np.nanmedian(map_error(maps, stepped.truth_x, stepped.truth_y)[2]) < 0.1
+
+
 def test_clouds_need_relief(planar):
     with pytest.raises(RegistrationError, match=r"item 'wall', view 'v01'.*dominant plane.*method='homography'"):
         registration_maps(planar.ingest.drop_vars("pose"), method="clouds")

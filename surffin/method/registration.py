@@ -1237,7 +1237,10 @@ def _pose_estimator(xyz: np.ndarray, ref: int, views: list, item: str, tolerance
                 xyz[anchor], xyz[index], frames[anchor], frames[index], tolerance, where
             )
         ]
-        transform, again = _chosen(candidates, refine, index, where)
+        try:
+            transform, again = _chosen(candidates, refine, index, where)
+        except RegistrationError:  # no better pose from there: the first one stays
+            return found[index]
         if again["texture_deviation"] < info["texture_deviation"]:
             found[index] = transform, {**again, "pose": np.linalg.inv(transform).tolist(), "searched_again": True}
         return found[index]
