@@ -634,6 +634,21 @@ def test_clouds_keep_the_first_pose_when_the_search_again_finds_none(stepped, mo
     assert np.nanmedian(map_error(maps, stepped.truth_x, stepped.truth_y)[2]) < 0.1
 
 
+def test_clouds_try_the_other_views_when_the_chain_step_refines_none(stepped, monkeypatch):
+    chosen, first = registration._chosen, []
+
+    def none_first(candidates, refine, index, where):
+        if index == 2 and not first:
+            first.extend({info["aligned_with"] for _, info in candidates})
+            raise RegistrationError(f"{where}: none refined")
+        return chosen(candidates, refine, index, where)
+
+    monkeypatch.setattr(registration, "_chosen", none_first)
+    maps = registration_maps(stepped.ingest.drop_vars("pose"), method="clouds")
+    assert len(first) == 1 and maps.attrs["diagnostics"]["v02"]["aligned_with"] not in first
+    assert np.nanmedian(map_error(maps, stepped.truth_x, stepped.truth_y)[2]) < 0.1
+
+
 def test_clouds_need_relief(planar):
     with pytest.raises(RegistrationError, match=r"item 'wall', view 'v01'.*dominant plane.*method='homography'"):
         registration_maps(planar.ingest.drop_vars("pose"), method="clouds")

@@ -1161,7 +1161,9 @@ def _pose_estimator(xyz: np.ndarray, ref: int, views: list, item: str, tolerance
     reference view, or one already estimated: the angle between two views is
     that between the normals of their dominant planes), so that views far from
     the reference view are reached in smaller steps; the candidates are then
-    refined against the reference view and one chosen (:func:`_chosen`).
+    refined against the reference view and one chosen (:func:`_chosen`). When
+    none of them refines, the candidates aligned with the reference view and
+    the views already estimated are tried instead.
 
     Parameters
     ----------
@@ -1199,21 +1201,34 @@ def _pose_estimator(xyz: np.ndarray, ref: int, views: list, item: str, tolerance
     angles = np.arccos(np.clip(normals @ normals.T, -1.0, 1.0))
     found = {}
 
+    def searched(index: int, anchors: list[int], where: str) -> tuple[np.ndarray, dict]:
+        # the candidates aligned with each anchor view (its estimated pose), refined, one chosen
+        candidates = [
+            (
+                coarse @ (np.eye(4) if anchor == ref else estimated(anchor)[0]),
+                {**details, "aligned_with": views[anchor]},
+            )
+            for anchor in anchors
+            for coarse, details in _coarse_transforms(
+                xyz[anchor], xyz[index], frames[anchor], frames[index], tolerance, where
+            )
+        ]
+        transform, info = _chosen(candidates, refine, index, where)
+        return transform, {**info, "pose": np.linalg.inv(transform).tolist()}
+
     def estimated(index: int) -> tuple[np.ndarray, dict]:
         if index not in found:
             where = f"item {item!r}, view {views[index]!r}"
             nearer = [other for other in range(len(views)) if angles[other, ref] < angles[index, ref]]
             base = min(nearer, key=lambda other: angles[other, index]) if nearer else ref
-            start = np.eye(4) if base == ref else estimated(base)[0]
-            candidates = [
-                (transform @ start, info)
-                for transform, info in _coarse_transforms(
-                    xyz[base], xyz[index], frames[base], frames[index], tolerance, where
-                )
-            ]
-            transform, info = _chosen(candidates, refine, index, where)
-            info = {**info, "aligned_with": views[base], "pose": np.linalg.inv(transform).tolist()}
-            found[index] = transform, info
+            try:
+                found[index] = searched(index, [base], where)
+            except RegistrationError:
+                # no candidate from the chain's step refined: from the reference view and the views estimated
+                others = [anchor for anchor in (ref, *found) if anchor != base]
+                if not others:
+                    raise
+                found[index] = searched(index, others, where)
         return found[index]
 
     def checked(index: int) -> tuple[np.ndarray, dict]:
@@ -1229,20 +1244,14 @@ def _pose_estimator(xyz: np.ndarray, ref: int, views: list, item: str, tolerance
         if not others or info["texture_deviation"] <= _TEXTURE_OUTLIER * float(np.median(others)):
             return transform, info
         where = f"item {item!r}, view {views[index]!r}"
-        candidates = [
-            (coarse @ estimated(anchor)[0], {**details, "aligned_with": views[anchor]})
-            for anchor in range(len(views))
-            if anchor not in (index, ref)
-            for coarse, details in _coarse_transforms(
-                xyz[anchor], xyz[index], frames[anchor], frames[index], tolerance, where
-            )
-        ]
         try:
-            transform, again = _chosen(candidates, refine, index, where)
+            transform, again = searched(
+                index, [anchor for anchor in range(len(views)) if anchor not in (index, ref)], where
+            )
         except RegistrationError:  # no better pose from there: the first one stays
             return found[index]
         if again["texture_deviation"] < info["texture_deviation"]:
-            found[index] = transform, {**again, "pose": np.linalg.inv(transform).tolist(), "searched_again": True}
+            found[index] = transform, {**again, "searched_again": True}
         return found[index]
 
     rechecked: set[int] = set()
