@@ -1,6 +1,7 @@
 """The entry points: the stage table's jobs write what the in-memory chain computes; jobs sharing a process."""
 
 import dataclasses
+import json
 import logging
 import math
 import os
@@ -15,6 +16,7 @@ import dask.array
 import numpy as np
 import pytest
 import xarray as xr
+import yaml
 
 import surffin
 from surffin.io.store import open_store
@@ -202,6 +204,37 @@ def test_the_plan_refuses_a_calibration_of_another_camera(tiny_campaign, tmp_pat
     config = {**read_config(), "calibration_store": str(calibration)}
     with pytest.raises(surffin.StoreError, match="sensor"):
         Plan.read(tiny_campaign, config)
+
+
+def test_the_plan_refuses_a_calibration_acquired_with_other_settings(tiny_campaign, tmp_path):
+    root = tmp_path / "raw"
+    shutil.copytree(tiny_campaign, root)
+
+    def settings(folder, exposure):
+        for view in (root / folder).rglob("*.npz"):
+            view.with_name(f"{view.stem}.meta.json").write_text(json.dumps({"exposure_us": exposure, "gain": 2}))
+
+    settings("calibration", 250)
+    settings("specimens", 250)
+    settings("scenes", 250)
+    calibration = run_calibration(root, tmp_path / "calibration.zarr")
+    doc = yaml.safe_load((root / "campaign.yaml").read_text())
+    del doc["calibration"]
+    doc["camera"]["match_settings"] = ["exposure_us"]
+    (root / "campaign.yaml").write_text(yaml.safe_dump(doc))
+    config = {**read_config(), "calibration_store": str(calibration)}
+    assert Plan.read(root, config).campaign.camera.match_settings == ("exposure_us",)
+    settings("specimens", 300)
+    settings("scenes", 300)
+    with pytest.raises(surffin.StoreError) as raised:
+        Plan.read(root, config)
+    message = str(raised.value)
+    assert message.startswith(f"{calibration}: setting 'exposure_us' is 250 in the calibration's views but 300")
+    assert "camera.match_settings" in message
+    # the gain differs nowhere, and is not asked to match anyway
+    doc["camera"]["match_settings"] = ["gain"]
+    (root / "campaign.yaml").write_text(yaml.safe_dump(doc))
+    Plan.read(root, config)
 
 
 class Name(str):

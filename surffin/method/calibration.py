@@ -1588,7 +1588,8 @@ def check_calibration(path: str | os.PathLike, campaign: Campaign) -> None:
     ------
     StoreError
         The store is not a calibration, or its sensor grid is not this camera's
-        (width x height), so it cannot cover the crop.
+        (width x height), so it cannot cover the crop, or a setting of
+        ``camera.match_settings`` differs between its views and the items'.
     """
     ds = open_store(path, stage="calibration")
     camera = campaign.camera
@@ -1601,3 +1602,29 @@ def check_calibration(path: str | os.PathLike, campaign: Campaign) -> None:
     rows, cols = campaign.crop.slices
     if not bool(ds["coef"].isel(y=rows, x=cols).notnull().any()):
         raise StoreError(f"{path}: no calibrated pixel inside the crop {campaign.crop} of {campaign.path}")
+    _check_settings(path, ds.attrs.get("settings"), campaign)
+
+
+def _check_settings(path, recorded: Mapping | None, campaign: Campaign) -> None:
+    """Check that the settings of ``camera.match_settings`` of the calibration's views are the items' views'."""
+    names = campaign.camera.match_settings
+    if not names:
+        return
+    if recorded is None:
+        raise StoreError(
+            f"{path}: the calibration records no acquisition settings, but {campaign.path} asks "
+            f"camera.match_settings {list(names)} to match; refit it with this surffin from views with "
+            f"<stem>.meta.json sidecars, or remove camera.match_settings"
+        )
+    views = [view for item in campaign.items.values() for view in item.views]
+    items = [read_settings(view) for view in views]
+    for name in names:
+        theirs = {repr(values[name]) if name in values else "missing" for values in recorded.values()}
+        ours = {repr(values[name]) if name in values else "missing" for values in items}
+        if len(theirs | ours) > 1:
+            raise StoreError(
+                f"{path}: setting {name!r} is {', '.join(sorted(theirs))} in the calibration's views but "
+                f"{', '.join(sorted(ours))} in the items' views of {campaign.path}; camera.match_settings asks "
+                f"them equal: use a calibration acquired with the items' settings, or remove {name!r} from "
+                f"camera.match_settings"
+            )
