@@ -1184,10 +1184,10 @@ def _pose_estimator(xyz: np.ndarray, ref: int, views: list, item: str, tolerance
         ``estimated(index)``: the reference-to-view transform (4, 4) of view
         ``index`` and its diagnostics (those of :func:`_chosen`, ``pose``: the
         view's camera-to-reference-camera transform, and ``aligned_with``: the
-        view its coarse pose was found against; ``searched_again`` when its first
-        pose's texture deviation was an outlier among the item's views and a search
-        from every other view found a better one). RegistrationError naming the
-        item and view when it fails.
+        view its coarse pose was found against; ``texture_outlier`` when its first
+        pose's texture deviation was an outlier among the item's views, which a search
+        from every other view then tried to better, ``searched_again`` when it did).
+        RegistrationError naming the item and view when it fails.
     """
     clouds = [points.reshape(-1, 3) for points in xyz]
     clouds = [cloud[np.isfinite(cloud).all(axis=-1)] for cloud in clouds]
@@ -1243,6 +1243,7 @@ def _pose_estimator(xyz: np.ndarray, ref: int, views: list, item: str, tolerance
         others = [value for value in others if value is not None]
         if not others or info["texture_deviation"] <= _TEXTURE_OUTLIER * float(np.median(others)):
             return transform, info
+        found[index] = transform, {**info, "texture_outlier": True}
         where = f"item {item!r}, view {views[index]!r}"
         try:
             transform, again = searched(
@@ -1251,7 +1252,7 @@ def _pose_estimator(xyz: np.ndarray, ref: int, views: list, item: str, tolerance
         except RegistrationError:  # no better pose from there: the first one stays
             return found[index]
         if again["texture_deviation"] < info["texture_deviation"]:
-            found[index] = transform, {**again, "searched_again": True}
+            found[index] = transform, {**again, "texture_outlier": True, "searched_again": True}
         return found[index]
 
     rechecked: set[int] = set()
