@@ -458,7 +458,11 @@ def lens_cloud(pose, distortion, camera=CAMERA, crop=CROP):
     pixels = np.stack([cols, rows], axis=-1).reshape(-1, 1, 2).astype(np.float64)
     matrix = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
-    normalised = cv2.undistortPoints(pixels, matrix, np.array(distortion), criteria=criteria).reshape(*rows.shape, 2)
+    if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4 iterates to a criterion in its own function, 5 in this one
+        normalised = cv2.undistortPointsIter(pixels, matrix, np.array(distortion), None, None, criteria)
+    else:
+        normalised = cv2.undistortPoints(pixels, matrix, np.array(distortion), criteria=criteria)
+    normalised = normalised.reshape(*rows.shape, 2)
     rays = np.concatenate([normalised, np.ones((*rows.shape, 1))], axis=-1)
     along = -pose[2, 3] / (rays @ pose[2, :3])  # camera centre + along * (R ray) on Z = 0
     return rays * along[..., None], matrix
