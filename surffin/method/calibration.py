@@ -870,20 +870,14 @@ def fit_correction(
 
 
 def _bilinear(table: np.ndarray, d_nodes: np.ndarray, t_nodes: np.ndarray, distance, aoi) -> np.ndarray:
-    """Bilinear interpolation of ``table`` (nd, nt) on regular nodes, clamped to the grid; NaN where an input is."""
+    """Bilinear interpolation of ``table`` (nd, nt) on its nodes, clamped to the grid; NaN where an input is."""
+    from scipy.interpolate import RegularGridInterpolator
+
     distance, aoi = np.broadcast_arrays(np.asarray(distance, dtype=np.float64), np.asarray(aoi, dtype=np.float64))
-    finite = np.isfinite(distance) & np.isfinite(aoi)
-    corners, weights = [], []
-    for nodes, values in ((d_nodes, distance), (t_nodes, aoi)):
-        position = np.clip(np.where(finite, (values - nodes[0]) / (nodes[1] - nodes[0]), 0.0), 0, nodes.size - 1)
-        lower = np.minimum(np.floor(position), nodes.size - 2).astype(np.intp)
-        corners.append(lower)
-        weights.append(position - lower)
-    (i, j), (u, v) = corners, weights
-    near = (1 - v) * table[i, j] + v * table[i, j + 1]
-    far = (1 - v) * table[i + 1, j] + v * table[i + 1, j + 1]
-    value = (1 - u) * near + u * far
-    return np.where(finite, value, np.nan)
+    points = np.stack([np.clip(distance, d_nodes[0], d_nodes[-1]), np.clip(aoi, t_nodes[0], t_nodes[-1])], axis=-1)
+    finite = np.isfinite(points).all(axis=-1)
+    inside = np.where(finite[..., None], points, (d_nodes[0], t_nodes[0])).reshape(-1, 2)
+    return np.where(finite, RegularGridInterpolator((d_nodes, t_nodes), table)(inside).reshape(finite.shape), np.nan)
 
 
 def correction_factor(correction: xr.DataArray, distance, aoi):
