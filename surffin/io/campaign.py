@@ -43,6 +43,7 @@ from surffin.io.viewfile import (
     pose_problem,
     read_settings,
     read_view,
+    setting_values,
 )
 
 __all__ = [
@@ -66,7 +67,6 @@ _UNITS = ("m", "mm")
 _DISTORTION_SIZES = (4, 5, 8)
 _SHOWN_VIEWS = 3
 _TOP_LEVEL = "(top level)"
-_MISSING = object()
 _MERGE_TAG = "tag:yaml.org,2002:merge"
 _SHOW = reprlib.Repr()
 _SHOW.maxstring = _SHOW.maxother = 60
@@ -783,14 +783,12 @@ class _Builder:
         settings = {}
         for view in views if self.camera.match_settings else ():
             with _at_key(key):
-                settings[view] = read_settings(view)
+                settings[str(view.relative_to(self.root))] = read_settings(view)
         for name in self.camera.match_settings:
-            groups: dict[Any, list[str]] = {}
-            for view, values in settings.items():
-                groups.setdefault(values.get(name, _MISSING), []).append(str(view.relative_to(self.root)))
+            groups = setting_values(settings, name)
             if len(groups) > 1:
                 found = "; ".join(
-                    f"{'missing' if value is _MISSING else repr(value)} in {len(names)} view(s): "
+                    f"{value} in {len(names)} view(s): "
                     f"{', '.join(names[:_SHOWN_VIEWS])}{', ...' if len(names) > _SHOWN_VIEWS else ''}"
                     for value, names in groups.items()
                 )

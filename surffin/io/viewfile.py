@@ -58,6 +58,7 @@ __all__ = [
     "list_views",
     "check_view",
     "read_settings",
+    "setting_values",
     "pose_problem",
     "pose_sidecar_path",
     "sidecar_path",
@@ -404,6 +405,27 @@ def read_settings(path: str | Path) -> dict[str, int | float | str]:
         if not (isinstance(value, str) or _is_json_number(value)):
             raise ViewFileError(f"{sidecar}: setting {name!r} is {value!r}; {expected}")
     return document
+
+
+def setting_values(settings: Mapping[str, Mapping], name: str) -> dict[str, list[str]]:
+    """Group views by their value of one acquisition setting.
+
+    Parameters
+    ----------
+    settings : mapping
+        View (a name) -> its settings (:func:`read_settings`).
+    name : str
+        The setting.
+
+    Returns
+    -------
+    dict of str to list of str
+        The value's ``repr`` (``"missing"`` for views without it) -> the views holding it, in order.
+    """
+    groups: dict[str, list[str]] = {}
+    for view, values in settings.items():
+        groups.setdefault(repr(values[name]) if name in values else "missing", []).append(view)
+    return groups
 
 
 def write_view(
