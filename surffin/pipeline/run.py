@@ -104,8 +104,7 @@ def _open_inputs(stores: Mapping[str, str | os.PathLike], chunks: Mapping[str, i
     items = [ds for name, ds in opened.items() if name != "calibration"]
     if all(ds.sizes.get(dim, 1) <= limits[dim] for ds in items for dim in ("y", "x")):
         return {name: ds.load() for name, ds in opened.items()}
-    # in the chunks the stages write (all views of a pixel in one chunk), as the stores hold them
-    return {name: ds.chunk({dim: limits[dim] for dim in ("y", "x") if dim in ds.dims}) for name, ds in opened.items()}
+    return {name: open_store(path) for name, path in stores.items()}
 
 
 def run_stage(
