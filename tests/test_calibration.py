@@ -2,6 +2,7 @@
 
 import dataclasses
 import logging
+import tempfile
 
 import dask.array as da
 import numpy as np
@@ -13,6 +14,7 @@ from hypothesis import strategies as st
 from scipy.optimize import least_squares
 
 import surffin
+import surffin.method.calibration
 from surffin.errors import CalibrationError
 from surffin.grid import Roi
 from surffin.io.store import open_store, write_store
@@ -570,6 +572,28 @@ def test_calibrate_logs_progress_and_refuses_bad_requests(campaign, caplog):
     with caplog.at_level(logging.INFO, logger="surffin"), pytest.raises(CalibrationError, match="no pixel"):
         calibrate(camp, exclude=everything[2:])
     assert any("calibration: 2/" in message for message in caplog.messages)
+
+
+def test_calibrate_computes_each_views_geometry_once_and_leaves_no_temporary_files(campaign, monkeypatch, tmp_path):
+    """The second pass over the wall takes the first pass's observations back, not a second plane fit."""
+    _, camp, ds, _, _ = campaign
+    fitted = []
+    fit = surffin.method.calibration.frame_angle_of_incidence
+    monkeypatch.setattr(
+        surffin.method.calibration,
+        "frame_angle_of_incidence",
+        lambda xyz, *args, **kwargs: fitted.append(xyz.shape) or fit(xyz, *args, **kwargs),
+    )
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    again = calibrate(camp, exclude=[HELD_OUT], angular_smoothing=ds.attrs["angular_smoothing"])
+    assert len(fitted) == len(camp.calibration.wall) - 1 + len(camp.calibration.reference.views)
+    xr.testing.assert_identical(again, ds)
+    assert list(tmp_path.iterdir()) == []
+    # a failure between the passes leaves nothing behind either
+    everything = [path.stem for path in camp.calibration.wall]
+    with pytest.raises(CalibrationError, match="no pixel"):
+        calibrate(camp, exclude=everything[2:])
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_saturated_pixels_are_left_out_of_the_calibration_and_counted(tmp_path):

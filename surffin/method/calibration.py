@@ -42,6 +42,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import tempfile
 from collections.abc import Callable, Collection, Iterable, Mapping
 from functools import partial
 from pathlib import Path
@@ -1227,6 +1228,42 @@ def observe_view(campaign: Campaign, path: os.PathLike, aoi: Mapping) -> Observa
     return Observation(str(path), view.intensity, distance, aoi, view.radiometric, saturated)
 
 
+class _SpilledViews:
+    """Wall observations kept on disk between the calibration's two passes over the wall.
+
+    The second pass needs each wall view's distance and AOI again: computing them
+    twice cost about half of the calibration's time. Kept in memory they would grow
+    with the number of views (about 7 MB a full-sensor view), so they go to a
+    temporary folder, removed on exit, and are read back one at a time, exactly
+    as computed.
+    """
+
+    _ARRAYS = ("intensity", "distance", "aoi", "valid")
+
+    def __init__(self) -> None:
+        self._folder = tempfile.TemporaryDirectory(prefix="surffin-calibration-")
+        self._kept: dict[str, tuple[Path, int]] = {}
+
+    def __enter__(self) -> _SpilledViews:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._folder.cleanup()
+
+    def keep(self, view: Observation) -> None:
+        """Write ``view``'s arrays to the folder."""
+        prefix = Path(self._folder.name, str(len(self._kept)))
+        self._kept[view.name] = (prefix, view.saturated)
+        for field in self._ARRAYS:
+            np.save(f"{prefix}-{field}.npy", getattr(view, field), allow_pickle=False)
+
+    def get(self, name: str) -> Observation:
+        """Read back the observation of view file ``name`` that :meth:`keep` wrote."""
+        prefix, saturated = self._kept[name]
+        arrays = {field: np.load(f"{prefix}-{field}.npy", allow_pickle=False) for field in self._ARRAYS}
+        return Observation(name, **arrays, saturated=saturated)
+
+
 def calibration_set(campaign: Campaign, wall: str, reference: str) -> Calibration:
     """Another calibration set of a campaign's camera, in folders that ``campaign.yaml`` does not name.
 
@@ -1301,10 +1338,11 @@ def calibrate(
 
     The wall views are read one at a time (AOI and distance on the full sensor
     by :mod:`surffin.method.geometry`) and added to :class:`WallStatistics`, so memory
-    does not grow with their number; then every pixel is fitted
+    does not grow with their number (the views a second pass needs wait in a
+    temporary folder, :class:`_SpilledViews`); then every pixel is fitted
     (:func:`fit_calibration`), the residual correction is fitted to random wall
     observations kept while they streamed by (:func:`fit_correction`), up to
-    :data:`~surffin.method.noise.NOISE_VIEWS` wall views are read again for the
+    :data:`~surffin.method.noise.NOISE_VIEWS` wall views are taken again for the
     intensity noise model (:mod:`surffin.method.noise`) and the reference panel
     views give the scale k (:func:`reference_scale`).
 
@@ -1326,8 +1364,8 @@ def calibrate(
         Learn the factor ``c(d, theta)`` that eq. 5 leaves (:func:`fit_correction`),
         from about 10^6 random wall observations of the crop kept while the
         views stream by, in one alternation: c from their ratios to the plain
-        eq. 5 fit, eq. 5 refitted per pixel to ``I / c`` (the wall views are
-        read a second time), c again from the ratios to that fit; the scale k
+        eq. 5 fit, eq. 5 refitted per pixel to ``I / c`` (the wall views
+        taken a second time), c again from the ratios to that fit; the scale k
         and the reflectance use it (``R = I / (k f c)``). False: the paper's
         plain eq. 5, fitted to ``I`` itself. The noise model is the same either way.
     exclude : collection of str, optional
@@ -1398,14 +1436,6 @@ def calibrate(
     aoi = {"window": window, "jump": jump, "max_window": max_window}
     stats = WallStatistics((campaign.camera.height, campaign.camera.width))
     samples = _WallSamples(campaign.crop, len(wall), pool=_CORRECTION_SAMPLES if residual_correction else 0)
-    saturated = {}
-    for path in wall:
-        view = observe_view(campaign, path, aoi)
-        saturated[str(path.relative_to(campaign.root))] = view.saturated
-        stats.add(view.intensity, view.distance, view.aoi, view.valid)
-        samples.add(view, path.stem)
-        advance(path)
-    ds = fit_calibration(stats, min_obs=min_obs, angular_smoothing=angular_smoothing)
 
     def checked(ds: xr.Dataset) -> dict:
         try:
@@ -1429,23 +1459,35 @@ def calibrate(
                 f"residual_correction=False"
             ) from exc
 
-    diagnostics = checked(ds)
-    # the noise model flat-fields with the plain fit (its 3 x 3 ratios cancel any smooth factor)
-    plain = ds["coef"].values
-    noise = NoiseStatistics()
-    correction = first = None
-    if residual_correction:
-        first = residuals(plain)["correction"]
-        refit = WallStatistics(stats.shape)
-    for path in wall if residual_correction else noise_views:
-        view = observe_view(campaign, path, aoi)
-        if path in noise_views:
-            expected = instrument_function(plain, view.distance, view.aoi) * np.cos(view.aoi)
-            noise.add(view.intensity, view.intensity / expected, view.valid)
+    saturated = {}
+    again = wall if residual_correction else noise_views
+    with _SpilledViews() as spilled:
+        for path in wall:
+            view = observe_view(campaign, path, aoi)
+            saturated[str(path.relative_to(campaign.root))] = view.saturated
+            stats.add(view.intensity, view.distance, view.aoi, view.valid)
+            samples.add(view, path.stem)
+            if path in again:
+                spilled.keep(view)
+            advance(path)
+        ds = fit_calibration(stats, min_obs=min_obs, angular_smoothing=angular_smoothing)
+        diagnostics = checked(ds)
+        # the noise model flat-fields with the plain fit (its 3 x 3 ratios cancel any smooth factor)
+        plain = ds["coef"].values
+        noise = NoiseStatistics()
+        correction = first = None
         if residual_correction:
-            factor = correction_factor(first, view.distance, view.aoi)
-            refit.add(view.intensity / factor, view.distance, view.aoi, view.valid)
-        advance(path)
+            first = residuals(plain)["correction"]
+            refit = WallStatistics(stats.shape)
+        for path in again:
+            view = spilled.get(str(path))
+            if path in noise_views:
+                expected = instrument_function(plain, view.distance, view.aoi) * np.cos(view.aoi)
+                noise.add(view.intensity, view.intensity / expected, view.valid)
+            if residual_correction:
+                factor = correction_factor(first, view.distance, view.aoi)
+                refit.add(view.intensity / factor, view.distance, view.aoi, view.valid)
+            advance(path)
     if residual_correction:
         ds = fit_calibration(refit, min_obs=min_obs, angular_smoothing=angular_smoothing, start=plain)
         diagnostics = checked(ds)
