@@ -11,6 +11,7 @@ import scipy.ndimage
 import xarray as xr
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
+from scipy.interpolate import RegularGridInterpolator
 from scipy.optimize import least_squares
 
 import surffin
@@ -754,6 +755,21 @@ def test_correction_never_extrapolates():
         correction_factor(ramp.rename(correction_aoi="aoi"), 0.4, 0.1)
     with pytest.raises(CalibrationError, match="at least 2 views"):
         fit_correction(steep, distance, aoi, np.zeros(distance.size, dtype=int))
+
+
+def test_correction_lookup_matches_scipy_regular_grid_interpolation():
+    """Any table, any positions: scipy's RegularGridInterpolator on the clamped positions, NaN where one is NaN."""
+    rng = np.random.default_rng(8)
+    distances, aois = np.linspace(0.25, 1.15, 13), np.linspace(0.0, 1.2, 9)
+    table = correction_table(lambda d, t: 1.0 + 0.05 * rng.standard_normal((d.size, t.size)), distances, aois)
+    distance, aoi = rng.uniform(0.1, 1.4, (40, 30)), rng.uniform(-0.2, 1.5, (40, 30))
+    distance[3, :4] = aoi[5, 7:9] = np.nan
+    got = correction_factor(table, distance, aoi)
+    finite = np.isfinite(distance) & np.isfinite(aoi)
+    points = np.stack([np.clip(distance, 0.25, 1.15), np.clip(aoi, 0.0, 1.2)], axis=-1)[finite]
+    expected = RegularGridInterpolator((distances, aois), table.values)(points)
+    np.testing.assert_allclose(got[finite], expected, rtol=1e-12)
+    assert np.isnan(got[~finite]).all() and (~finite).sum() == 6
 
 
 def test_instrument_truth_tabulates_the_rendered_systematics_for_the_correction_lookup():

@@ -871,14 +871,19 @@ def fit_correction(
 
 
 def _bilinear(table: np.ndarray, d_nodes: np.ndarray, t_nodes: np.ndarray, distance, aoi) -> np.ndarray:
-    """Bilinear interpolation of ``table`` (nd, nt) on its nodes, clamped to the grid; NaN where an input is."""
-    from scipy.interpolate import RegularGridInterpolator
+    """Bilinear interpolation of ``table`` (nd, nt) on equally spaced nodes, clamped to the grid; NaN where input is."""
+    from scipy.ndimage import map_coordinates
 
     distance, aoi = np.broadcast_arrays(np.asarray(distance, dtype=np.float64), np.asarray(aoi, dtype=np.float64))
-    points = np.stack([np.clip(distance, d_nodes[0], d_nodes[-1]), np.clip(aoi, t_nodes[0], t_nodes[-1])], axis=-1)
-    finite = np.isfinite(points).all(axis=-1)
-    inside = np.where(finite[..., None], points, (d_nodes[0], t_nodes[0])).reshape(-1, 2)
-    return np.where(finite, RegularGridInterpolator((d_nodes, t_nodes), table)(inside).reshape(finite.shape), np.nan)
+    # the nodes are equally spaced: a position's fractional index is arithmetic, no search
+    index = [
+        (np.clip(values, nodes[0], nodes[-1]) - nodes[0]) / (nodes[1] - nodes[0])
+        for values, nodes in ((distance, d_nodes), (aoi, t_nodes))
+    ]
+    finite = np.isfinite(index[0]) & np.isfinite(index[1])
+    index = [np.where(finite, i, 0.0).ravel() for i in index]
+    values = map_coordinates(table, index, order=1, mode="nearest", prefilter=False).reshape(finite.shape)
+    return np.where(finite, values, np.nan)
 
 
 def correction_factor(correction: xr.DataArray, distance, aoi):
