@@ -165,6 +165,22 @@ def _other_specimens() -> Preset:
     return replace(plaster, name="val-other-specimens", scenes=(scene,))
 
 
+# Signed radii (m, + convex) of the curved campaigns' tops: the training specimens P1-P4, and the
+# scene's other pieces of the classes, each bent otherwise than its class's specimen. A convex top
+# must drop less than its thickness at its edges (20 cm wide: 16.5 mm at 0.3 m).
+_SPECIMEN_RADII = (-0.3, 1.0, 0.5, 0.3)
+_PIECE_RADII = (0.6, -0.4, 0.4, -1.0)
+
+
+def _curved() -> Preset:
+    """val-other-specimens on cylindrical panels: specimens and scene pieces of other radii, 0.3-1 m."""
+    plaster = _other_specimens()
+    (layout,) = plaster.scene_layouts
+    specimens = tuple(replace(s, radius=r) for s, r in zip(plaster.specimens, _SPECIMEN_RADII, strict=True))
+    pieces = tuple(replace(s, radius=r) for s, r in zip(layout.pieces, _PIECE_RADII, strict=True))
+    return replace(plaster, name="val-curved", specimens=specimens, scenes=(replace(layout, pieces=pieces),))
+
+
 # Imperfect val-plaster campaigns: name -> (standard imperfections, fmt, units, poses).
 _IMPERFECT = {
     "val-distortion": ("unknown-distortion", "npz", "m", True),
@@ -196,6 +212,10 @@ def _campaigns() -> dict[str, Validation]:
             replace(plaster, name="val-far", scene_distance=0.75, scene_tilts=(9.0, 17.0, 27.0, 36.0, 46.0))
         ),
         "val-raw": Validation(replace(plaster, name="val-raw"), fmt="raw", units="mm"),
+        "val-curved": Validation(_curved()),
+        "val-curved-all": Validation(
+            replace(_curved(), name="val-curved-all"), imperfections=named_imperfections("all")
+        ),
         **imperfect,
     }
 
@@ -215,6 +235,10 @@ def _campaigns() -> dict[str, Validation]:
 #:   reference view, files mixed npz/ply/raw.
 #: - ``val-far``: val-plaster with the scene at 0.75 m and angles of 9-46 deg.
 #: - ``val-raw``: val-plaster as Helios raw buffers (mm).
+#: - ``val-curved``: val-other-specimens on cylindrical panels: the specimens' tops of radius
+#:   -0.3, 1.0, 0.5 and 0.3 m (+ convex), the scene's second pieces of 0.6, -0.4, 0.4 and -1.0 m
+#:   (each class bent otherwise in the scene than in training); ``val-curved-all`` adds every
+#:   imperfection of ``val-all``.
 #: - :data:`IMPERFECT`, val-plaster through a real camera
 #:   (:data:`~surffin.simulate.imperfections.STANDARD`): ``val-distortion`` (k1 -0.12,
 #:   k2 0.05, campaign.yaml giving the pinhole intrinsics only), ``val-known-distortion``
