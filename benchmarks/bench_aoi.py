@@ -1,6 +1,8 @@
 """Speed and accuracy of the AOI kernel (surffin.method.geometry) on synthetic 480x640 frames.
 
-Run by hand: ``python benchmarks/bench_aoi.py [--repeat N] [--subset N]``.
+Run by hand: ``python benchmarks/bench_aoi.py [--repeat N] [--subset N]``, or, to time the kernel against another
+version of it, ``python benchmarks/bench_aoi.py --against OLD.py`` (e.g. after
+``git show HEAD:surffin/method/geometry.py > /tmp/geometry_head.py``).
 
 Table 1, one row per window (``15-120``: the adaptive support, windows of 15 px doubling up to 120 px while the
 surface stays planar), on a scene: the kernel's median time per frame, its best (the machine is shared: the gap
@@ -22,13 +24,20 @@ arccos(|v . n|) at 0: a noisy normal can only make an AOI near 0 larger. It vani
 (60 deg tilt).
 
 The camera: pinhole, fx 565, fy 579, principal point at the centre; 0.9 mm Gaussian depth noise along each ray.
+
+With ``--against``, only one table: per frame (the scene, its central 320x480 crop, a plain wall at 30 deg) and
+support, the median time per frame of the other version's ``frame_angle_of_incidence`` and of this one's, run in
+turn in the same process, and the ratio of the medians (wall clock, and CPU time: the machine is shared), and the
+largest |aoi difference| (deg) and whether the two leave the same pixels without an AOI.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import time
 import timeit
+from pathlib import Path
 
 import numpy as np
 import xarray as xr
@@ -116,12 +125,56 @@ def label(window: int, largest: int) -> str:
     return f"{window:>7d}" if largest == window else f"{window:>3d}-{largest:<3d}"
 
 
+def compare(path: Path, repeat: int) -> None:
+    """Print the table of this kernel against the ``frame_angle_of_incidence`` of another geometry module file."""
+    spec = importlib.util.spec_from_file_location("reference_geometry", path)
+    reference = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(reference)
+    kernels = (reference.frame_angle_of_incidence, frame_angle_of_incidence)
+    timers = (time.perf_counter, time.process_time)
+    xyz = scene()[0]
+    frames = {
+        "scene 480x640": xyz,
+        "crop 320x480": xyz[80:400, 80:560],
+        "wall 480x640": scene(0.5, 30.0, specimen=False, seed=1)[0],
+    }
+    print(f"this kernel against {path}: median of {repeat} runs each, in turn")
+    print(" | ".join(("frame", "window", "ref ms", "ms", "speed-up", "cpu speed-up", "max |d aoi| deg", "same NaN")))
+    for name, frame in frames.items():
+        for window, largest in ((15, 120), (21, 120), (15, 15)):
+            # seconds[timer][kernel]: the runs of each kernel, alternating
+            seconds = [[[], []] for _ in timers]
+            for timer, runs in zip(timers, seconds):
+                for _ in range(repeat):
+                    for kernel, kept in zip(kernels, runs):
+                        kept += timeit.repeat(
+                            lambda: kernel(frame, window, max_window=largest), timer, number=1, repeat=1
+                        )
+            (old_wall, new_wall), (old_cpu, new_cpu) = np.median(seconds, axis=-1)
+            old, new = (kernel(frame, window, max_window=largest)[0] for kernel in kernels)
+            row = (
+                f"{name:13s}",
+                label(window, largest),
+                f"{old_wall * 1e3:6.1f}",
+                f"{new_wall * 1e3:5.1f}",
+                f"{old_wall / new_wall:8.2f}",
+                f"{old_cpu / new_cpu:12.2f}",
+                f"{np.nanmax(np.abs(np.rad2deg(old - new)), initial=0.0):15.1e}",
+                f"{np.array_equal(np.isnan(old), np.isnan(new))!s:>8}",
+            )
+            print(" | ".join(row))
+
+
 def main() -> None:
-    """Parse the command line and print the three tables."""
+    """Parse the command line and print the three tables, or the table against another version of the kernel."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=15, help="timed runs per window (median reported)")
     parser.add_argument("--subset", type=int, default=2000, help="pixels of the cKDTree and PCA references")
+    parser.add_argument("--against", type=Path, help="a geometry.py to time this kernel against (only that table)")
     args = parser.parse_args()
+    if args.against is not None:
+        compare(args.against, args.repeat)
+        return
     xyz, truth = scene()
     pixels = HEIGHT * WIDTH
     print(f"frame {HEIGHT}x{WIDTH}, noise {NOISE * 1e3:.1f} mm along the ray, median of {args.repeat} runs")

@@ -291,8 +291,14 @@ def _choose_windows(residual: np.ndarray, eligible: np.ndarray, window: int) -> 
 
 
 def _level_planes(
-    moments: np.ndarray, centre: np.ndarray, edges: np.ndarray, eligible: np.ndarray, window: int, min_count: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    moments: np.ndarray,
+    centre: np.ndarray,
+    edges: np.ndarray,
+    eligible: np.ndarray,
+    window: int,
+    min_count: float,
+    slopes: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Planes of the windows of one level of the moment pyramid, and the window each cell takes.
 
     Parameters
@@ -308,6 +314,8 @@ def _level_planes(
         Window side, cells.
     min_count : float
         Fewest valid pixels of a usable window.
+    slopes : bool, optional
+        Whether the windows' centroids and noise are computed, for :func:`_normal_slopes` (not at the base level).
 
     Returns
     -------
@@ -320,15 +328,15 @@ def _level_planes(
         :func:`_choose_windows`: flat index of the chosen window's centre, -1 for none.
     smallest : (h, w) ndarray of float32
         The smallest residual among the cell's 9 windows.
-    centroid : (2, h, w) ndarray of float64
+    centroid : (2, h, w) ndarray of float64 or None
         Mean ray coordinates x', y' of the valid pixels of the window centred on
         each cell: where its plane is the surface's tangent plane, to first order.
-    noise : (h, w) ndarray of float64
+    noise : (h, w) ndarray of float64 or None
         Variance of the direction of that window's normal from its residual,
         rad^2 (the least-squares variance of the slopes a, b over |(a, b, e)|^2).
     """
-    centroid = np.empty((2, *moments.shape[1:]))
-    noise = np.empty(moments.shape[1:])
+    centroid = np.empty((2, *moments.shape[1:])) if slopes else None
+    noise = np.empty(moments.shape[1:]) if slopes else None
     for plane in moments:
         _box(plane, window, out=plane)
     usable = (_box(edges.astype(np.float32), window) == 0) & (moments[0] >= min_count)
@@ -346,23 +354,36 @@ def _level_planes(
             a = (syy * sxq - sxy * syq) * inverse_determinant
             b = (sxx * syq - sxy * sxq) * inverse_determinant
             mean += centre[:, None, None]
-            centroid[:, rows] = mean[:2]
-            e = mean[2] - a * mean[0] - b * mean[1]
-            scale = 1.0 / np.sqrt(a * a + b * b + e * e)
-            normal[0, rows], normal[1, rows], normal[2, rows] = a * scale, b * scale, e * scale
+            normal[0, rows], normal[1, rows], normal[2, rows] = a, b, mean[2] - a * mean[0] - b * mean[1]
             # residual variance of q times z^4 = 1 / mean(q)^4: depth units
             variance = (sqq - a * sxq - b * syq) * inverse
-            noise[rows] = np.maximum(variance, 0.0) * (sxx + syy) * inverse_determinant * scale * scale
+            scale = _normalise(normal[:, rows])
+            if slopes:
+                centroid[:, rows] = mean[:2]
+                noise[rows] = np.maximum(variance, 0.0) * (sxx + syy) * inverse_determinant * scale * scale
             mean[2] *= mean[2]
             residual[rows] = np.where(planar, variance / (mean[2] * mean[2]), np.inf)
     source, smallest = _choose_windows(residual, eligible, window)
     return normal, residual, source, smallest, centroid, noise
 
 
+def _normalise(vector: np.ndarray) -> np.ndarray:
+    """Divide ``vector`` (3, ...) by its norm, in place, and return the inverse norm."""
+    scale = 1.0 / np.sqrt(vector[0] * vector[0] + vector[1] * vector[1] + vector[2] * vector[2])
+    vector *= scale
+    return scale
+
+
 def _normal_slopes(
-    normal: np.ndarray, centroid: np.ndarray, noise: np.ndarray, residual: np.ndarray, source: np.ndarray, half: int
+    normal: np.ndarray,
+    centroid: np.ndarray,
+    noise: np.ndarray,
+    residual: np.ndarray,
+    source: np.ndarray,
+    half: int,
+    needed: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Each cell's chosen plane as a first-order model of the normal around its window's centroid.
+    """Each needed cell's chosen plane as a first-order model of the normal around its window's centroid.
 
     A plane fitted to a window of a curved surface has, to first order, the
     surface's normal at the centroid of the window's points, not at a pixel
@@ -390,6 +411,8 @@ def _normal_slopes(
         Flat index of each cell's chosen window's centre, -1 for none.
     half : int
         Half a window, cells.
+    needed : (h, w) ndarray of bool
+        The cells whose models are computed.
 
     Returns
     -------
@@ -398,23 +421,24 @@ def _normal_slopes(
         ``J`` (3 x 2, row-major: d n_k / d x', d n_k / d y'; along the one axis
         with neighbours when only one has) and the variance ``V`` of ``J``'s
         rows (xx, xy, yy, 1/(x' y') units: a correction ``J o`` has variance
-        ``o^T V o`` per unit of normal direction); meaningless for cells without a window.
+        ``o^T V o`` per unit of normal direction); zero at the cells not needed or without a window.
     known : (h, w) ndarray of bool
         The slopes are known along both axes.
     """
     height, width = source.shape
-    chosen = np.maximum(source, 0)
+    cells = np.flatnonzero(needed & (source >= 0))
+    chosen = source.reshape(-1)[cells]
     row, column = np.divmod(chosen, width)
     normals, centroids, residuals = normal.reshape(3, -1), centroid.reshape(2, -1), residual.reshape(-1)
-    model = np.zeros((14, height, width))
-    own_normal, own_centroid = model[:3], model[3:5]
-    slopes, variance = model[5:11].reshape(3, 2, height, width), model[11:]
+    values = np.empty((14, cells.size))
+    own_normal, own_centroid = values[:3], values[3:5]
+    slopes, variance = values[5:11].reshape(3, 2, -1), values[11:]
     own_normal[:], own_centroid[:] = normals[:, chosen], centroids[:, chosen]
-    limit = np.where(source >= 0, _PLANARITY * np.maximum(residuals[chosen], 0.0), -np.inf)
+    limit = _PLANARITY * np.maximum(residuals[chosen], 0.0)
     noises, own_noise = noise.reshape(-1), noise.reshape(-1)[chosen]
-    scatter = np.zeros((3, height, width))  # sum of d d^T: xx, xy, yy
-    spread = np.zeros((3, height, width))  # sum of the changes' noise times d d^T
-    moments = np.zeros((3, 2, height, width))  # sum of (change of the normal) d^T
+    scatter = np.zeros((3, cells.size))  # sum of d d^T: xx, xy, yy
+    spread = np.zeros((3, cells.size))  # sum of the changes' noise times d d^T
+    moments = np.zeros((3, 2, cells.size))  # sum of (change of the normal) d^T
     for dy, dx in _DIRECTIONS[:2]:
         for sign in (-1, 1):
             other_row, other_column = row + sign * dy * half, column + sign * dx * half
@@ -425,7 +449,8 @@ def _normal_slopes(
             change = np.where(used, normals[:, other] - own_normal, 0.0)
             products = np.stack((step[0] * step[0], step[0] * step[1], step[1] * step[1]))
             scatter += products
-            spread += products * (own_noise + noises[other])
+            # np.empty holds the noise of windows that are not usable: an unused neighbour adds nothing
+            spread += products * np.where(used, own_noise + noises[other], 0.0)
             moments += change[:, None] * step[None]
     determinant = scatter[0] * scatter[2] - scatter[1] * scatter[1]
     trace = scatter[0] + scatter[2]
@@ -447,11 +472,15 @@ def _normal_slopes(
     variance[0] = pxx * (pxx * sxx + pxy * sxy) + pxy * (pxx * sxy + pxy * syy)
     variance[1] = pxx * (pxy * sxx + pyy * sxy) + pxy * (pxy * sxy + pyy * syy)
     variance[2] = pxy * (pxy * sxx + pyy * sxy) + pyy * (pxy * sxy + pyy * syy)
-    return model, both
+    model = np.zeros((14, height * width))
+    model[:, cells] = values
+    known = np.zeros(height * width, dtype=bool)
+    known[cells] = both
+    return model.reshape(14, height, width), known.reshape(height, width)
 
 
 def _carry(model: np.ndarray, rays: np.ndarray) -> np.ndarray:
-    """Evaluate :func:`_normal_slopes`' models (14, H, W), upsampled to pixels, at their rays (2, H, W).
+    """Evaluate :func:`_normal_slopes`' models (14, n), taken at n pixels, at their rays (2, n): unit normals (3, n).
 
     The correction ``c = J (r - m)``, with ``v = o^T V o`` its noise variance, is
     shrunk by ``max(0, 1 - s^2 v / |c|^2)`` (s = :data:`_SIGNIFICANCE`, a
@@ -460,14 +489,16 @@ def _carry(model: np.ndarray, rays: np.ndarray) -> np.ndarray:
     surface's curvature it stays.
     """
     x, y = rays[0] - model[3], rays[1] - model[4]
-    slopes, variance = model[5:11], model[11:]
-    correction = [slopes[2 * k] * x + slopes[2 * k + 1] * y for k in range(3)]
+    variance = model[11:]
+    correction = model[5:11:2] * x + model[6:11:2] * y
     noise = variance[0] * x * x + 2.0 * variance[1] * x * y + variance[2] * y * y
     size = correction[0] * correction[0] + correction[1] * correction[1] + correction[2] * correction[2]
     with np.errstate(invalid="ignore", divide="ignore"):
         shrink = np.where(size > 0.0, np.clip(1.0 - _SIGNIFICANCE**2 * noise / size, 0.0, 1.0), 0.0)
-    carried = np.stack([model[k] + shrink * correction[k] for k in range(3)])
-    return carried / np.sqrt(carried[0] * carried[0] + carried[1] * carried[1] + carried[2] * carried[2])
+    correction *= shrink
+    correction += model[:3]
+    _normalise(correction)
+    return correction
 
 
 def _levels(window: int, max_window: int) -> int:
@@ -511,13 +542,12 @@ def _window_planes(
     rays = moments[1:3] + centre[:2, None, None] if levels > 1 else None  # x', y' (meaningless where invalid)
     pooled = _pool(moments) if levels > 1 else None
     min_count = max(3, math.ceil(min_fraction * window * window - 1e-9))
-    normal, _, source, smallest, _, _ = _level_planes(moments, centre, edges, eligible, window, min_count)
-    taken = source >= 0
-    out = normal.reshape(3, -1).take(np.where(taken, source, 0), axis=1).reshape(3, *valid.shape)
-    out[:, ~taken] = np.nan
+    base, _, base_source, smallest, _, _ = _level_planes(moments, centre, edges, eligible, window, min_count, False)
+    taken = base_source >= 0
     limit = _GROWTH * smallest
     edge_count, eligible_count = edges.astype(np.float32), eligible.astype(np.float32)
-    slopes = sloped = None  # of the previous level's cells: the slopes of the normal (9, h, w), known on both axes
+    last = np.zeros(valid.shape, dtype=np.int8)  # the level of the plane each taken pixel takes
+    planes = []  # normal, centroid, noise, residual and source of the cells of each level from 1
     for level in range(1, levels):
         moments, edge_count, eligible_count = pooled, _pool(edge_count), _pool(eligible_count)
         pooled = _pool(moments) if level + 1 < levels else None
@@ -530,16 +560,54 @@ def _window_planes(
         taken &= _upsample(fit, level, valid.shape) <= limit
         if not taken.any():
             break
-        model, known = _normal_slopes(normal, centroid, noise, residual, source, window // 2)
+        planes.append((normal, centroid, noise, residual, source))
+        last += taken
+    out = base.reshape(3, -1).take(np.where(base_source >= 0, base_source, 0), axis=1).reshape(3, *valid.shape)
+    out[:, base_source < 0] = np.nan
+    flat = out.reshape(3, -1)
+    # each pixel takes the normal of its last level's cell (flat indices of both), carried to the pixel
+    pixels, cells = [], []
+    for level, (*_, source) in enumerate(planes, start=1):
+        pixels.append(np.flatnonzero(last == level))
+        row, column = np.divmod(pixels[-1], valid.shape[1])
+        cells.append((row >> level) * source.shape[1] + (column >> level))
+    for pixel, cell, model in zip(pixels, cells, _level_models(planes, cells, window // 2)):
+        for block in range(0, pixel.size, _BLOCK):
+            part = slice(block, block + _BLOCK)
+            flat[:, pixel[part]] = _carry(model.take(cell[part], axis=1), rays.reshape(2, -1).take(pixel[part], axis=1))
+    return out
+
+
+def _level_models(planes: list, cells: list, half: int) -> list[np.ndarray]:
+    """Model the normal (:func:`_normal_slopes`) in the cells of each level from 1 that a pixel takes.
+
+    A cell without slopes on both axes takes the mean of its 2 x 2 smaller cells' that had them; so, from the
+    largest level down, a level's models are computed at the cells its pixels take (``cells[k]``: flat indices,
+    for the pixels whose last level is k + 1) and at the smaller cells of the cells above that lack slopes.
+    Returns the models (14, cells) of each level, zero at the cells not needed.
+    """
+    found = []
+    lacking = None  # the cells of the level above without slopes on both axes
+    for level in range(len(planes), 0, -1):
+        normal, centroid, noise, residual, source = planes[level - 1]
+        needed = np.zeros(source.shape, dtype=bool)
+        needed.reshape(-1)[cells[level - 1]] = True
+        if lacking is not None:
+            needed |= lacking.repeat(2, axis=0).repeat(2, axis=1)[: source.shape[0], : source.shape[1]]
+        model, known = _normal_slopes(normal, centroid, noise, residual, source, half, needed)
+        lacking = needed & ~known
+        found.append((model, known))
+    models = []
+    slopes = sloped = None  # of the previous level's cells: the slopes of the normal (9, h, w), known on both axes
+    for model, known in reversed(found):
         if slopes is not None:
-            # a cell without slopes on both axes takes the mean of its 2 x 2 smaller cells' that had them
             weight = _pool(sloped.astype(np.float64))
             fill = ~known & (weight > 0)
             model[5:, fill] = (_pool(slopes * sloped) / np.where(fill, weight, 1.0))[:, fill]
             known |= fill
         slopes, sloped = model[5:], known
-        np.copyto(out, _carry(_upsample(model, level, valid.shape), rays), where=taken)
-    return out
+        models.append(model.reshape(14, -1))
+    return models
 
 
 def plane_normals(

@@ -62,12 +62,12 @@ def _chain(name: str, version: int) -> Stage:
 STAGES = {
     stage.name: stage
     for stage in (
-        Stage("calibration", calibrate, ("views",), "calibration.zarr", 6),
+        Stage("calibration", calibrate, ("views",), "calibration.zarr", 7),
         Stage("ingest", ingest_item, ("views",), "ingest/{item}.zarr", 3),
-        _chain("aoi", 5),
+        _chain("aoi", 6),
         _chain("reflectance", 5),
         _chain("registration", 5),
-        _chain("features", 5),
+        _chain("features", 6),
         Stage("training", training_set, ("features",), "training.zarr", 4),
         Stage("labels", labels_stage, ("features", "training"), "labels/{scene}.zarr", 4),
         Stage("summary", summarise, ("features", "labels", "truth"), "summary.json", 2),
