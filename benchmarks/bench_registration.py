@@ -26,25 +26,36 @@ intrinsics (``yaml``) and without any (``none``; without distortion in campaign.
 either way): per item the median error against the truth per non-reference view, the distance from the maps of the
 true poses (median and 95th percentile over the pixels both map), the candidates refined per view, the camera model
 used (``given`` or ``estimated``) with its residual (pixels), and the time.
+Table 8, :func:`surffin.method.stages.registration_stage` per item (the item's intensity and z standing in for its
+reflectance and AOI), single-threaded: median CPU seconds of ``--repeat`` runs (at least 5) of the stage and of its
+parts, the maps and :func:`register`. ``--baseline DIR`` (a folder holding another revision's registration.py and
+optionally camera_model.py, e.g. from ``git show``) runs that code alternately in the same process: the speed-ups
+and the largest relative differences of the stage's maps and values (and whether their NaN patterns agree).
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import sys
 import tempfile
 import time
 from pathlib import Path
+from unittest import mock
 
+import cv2
 import numpy as np
 import xarray as xr
 from bench_chunks import CONFIG, chain_parameters, quiet_logs  # benchmarks/ is on sys.path when run as a script
 from bench_item import interior
 from scipy.spatial.transform import Rotation
+from threadpoolctl import threadpool_limits
 
 from surffin.errors import RegistrationError
 from surffin.io.campaign import read_campaign
 from surffin.io.ingest import ingest_item
 from surffin.io.store import open_store
+from surffin.method import registration, stages
 from surffin.method.registration import DETECTORS, register, registration_error, registration_maps
 from surffin.method.stages import process_item
 from surffin.pipeline import parameters
@@ -339,6 +350,97 @@ def clouds_table(items) -> None:
             )
 
 
+def load_baseline(folder: Path):
+    """Import another revision's registration.py (with its camera_model.py, if the folder has one) as a module."""
+
+    def imported(name: str, path: Path):
+        spec = importlib.util.spec_from_file_location(name, path)
+        module = sys.modules[name] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    current = sys.modules["surffin.method.camera_model"]
+    if (folder / "camera_model.py").exists():
+        sys.modules["surffin.method.camera_model"] = imported("baseline_camera_model", folder / "camera_model.py")
+    try:
+        return imported("baseline_registration", folder / "registration.py")
+    finally:
+        sys.modules["surffin.method.camera_model"] = current
+
+
+def cpu_seconds(function, *args, **kwargs):
+    """Return (the result of the call, the CPU seconds it took)."""
+    start = time.process_time()
+    result = function(*args, **kwargs)
+    return result, time.process_time() - start
+
+
+def stage_runs(module, ingest: xr.Dataset, inputs: tuple) -> tuple[xr.Dataset, dict]:
+    """Run the registration stage with the maps and register of ``module``: its output and CPU seconds per part."""
+    with mock.patch.multiple(stages, registration_maps=module.registration_maps, register=module.register):
+        registered, seconds = cpu_seconds(stages.registration_stage, ingest, *inputs)
+    maps, maps_seconds = cpu_seconds(module.registration_maps, ingest)
+    _, register_seconds = cpu_seconds(module.register, xr.Dataset({**inputs[0], **inputs[1]}), maps)
+    return registered, {"stage": seconds, "maps": maps_seconds, "register": register_seconds}
+
+
+def largest_difference(new: xr.Dataset, old: xr.Dataset, names) -> tuple[float, bool]:
+    """Return the largest relative difference of variables between two outputs and whether their NaN patterns agree."""
+    largest, same = 0.0, True
+    for name in names:
+        a, b = (np.asarray(ds[name].values, dtype=np.float64) for ds in (new, old))
+        same &= bool(np.array_equal(np.isnan(a), np.isnan(b)))
+        both = np.isfinite(a) & np.isfinite(b) & (b != 0)
+        if both.any():
+            largest = max(largest, float(np.max(np.abs(a[both] - b[both]) / np.abs(b[both]))))
+    return largest, same
+
+
+def stage_table(items, repeat: int, baseline: Path | None) -> None:
+    """Print Table 8: the registration stage per item, single-threaded, against a baseline revision if given."""
+    repeat = max(repeat, 5)
+    modules = {"current": registration}
+    if baseline is not None:
+        modules["baseline"] = load_baseline(baseline)
+    print(f"\nTable 8: registration_stage per item, 1 thread, CPU seconds (median of {repeat})")
+    header = f"{'item':5} {'method':10} {'stage':>6} {'maps':>6} {'register':>8}"
+    if baseline is not None:
+        header += f" {'base stage':>10} {'x stage':>7} {'x maps':>6} {'x reg.':>6} {'max rel maps':>12}"
+        header += f" {'max rel values':>14} {'NaN same':>8}"
+    print(header)
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with threadpool_limits(1):
+            for name, ingest, _, _ in items:
+                inputs = (
+                    xr.Dataset({"aoi": ingest["xyz"].sel(axis="z", drop=True).astype(np.float32)}),
+                    xr.Dataset({"reflectance": ingest["intensity"].astype(np.float32)}),
+                )
+                seconds, outputs = {label: [] for label in modules}, {}
+                for _ in range(repeat):
+                    for label, module in modules.items():
+                        outputs[label], spent = stage_runs(module, ingest, inputs)
+                        seconds[label].append(spent)
+                median = {
+                    label: {part: float(np.median([run[part] for run in runs])) for part in runs[0]}
+                    for label, runs in seconds.items()
+                }
+                now = median["current"]
+                line = f"{name:5} {outputs['current'].attrs['method']:10} {now['stage']:6.3f} {now['maps']:6.3f}"
+                line += f" {now['register']:8.3f}"
+                if baseline is not None:
+                    old = median["baseline"]
+                    maps = largest_difference(outputs["current"], outputs["baseline"], ("map_x", "map_y"))
+                    values = largest_difference(outputs["current"], outputs["baseline"], ("reflectance", "aoi"))
+                    line += f" {old['stage']:10.3f} {old['stage'] / now['stage']:7.2f} {old['maps'] / now['maps']:6.2f}"
+                    line += f" {old['register'] / now['register']:6.2f} {maps[0]:12.1e} {values[0]:14.1e}"
+                    line += f" {'yes' if maps[1] and values[1] else 'NO':>8}"
+                print(line)
+    finally:
+        cv2.setNumThreads(threads)
+
+
 def main() -> None:
     """Parse the command line, render a campaign unless one is given, and print the tables asked for."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -346,7 +448,10 @@ def main() -> None:
     parser.add_argument("--truth", type=Path, help="its truth folder (default: <campaign>-truth)")
     parser.add_argument("--repeat", type=int, default=3, help="timing repeats of table 3")
     parser.add_argument("--seed", type=int, default=0, help="of the robot's pose errors (tables 5 and 6)")
-    parser.add_argument("--tables", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6, 7], help="the tables to print")
+    parser.add_argument(
+        "--baseline", type=Path, help="table 8: a folder with another revision's registration.py (and camera_model.py)"
+    )
+    parser.add_argument("--tables", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6, 7, 8], help="the tables to print")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as scratch:
         campaign = args.campaign
@@ -361,6 +466,7 @@ def main() -> None:
             3: lambda: runtime_table(items, args.repeat),
             4: lambda: smoothing_table(items),
             7: lambda: clouds_table(items),
+            8: lambda: stage_table(items, args.repeat, args.baseline),
         }
         for number in sorted(set(args.tables) & set(tables)):
             tables[number]()

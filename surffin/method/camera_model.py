@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -76,13 +77,7 @@ class CameraModel:
         nowhere. ``inf`` without distortion or when no fold is found up to
         ``r2 = 4`` (63 deg off the axis).
         """
-        k1, k2, _, _, k3, k4, k5, k6 = self.coefficients()
-        r2 = _FOLD_SCAN
-        numerator, denominator = 1 + r2 * (k1 + r2 * (k2 + r2 * k3)), 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-        # d(r radial)/dr = radial + 2 r2 d(radial)/d(r2) > 0, and the denominator keeps its sign
-        grows = (numerator * denominator + 2 * r2 * _radial_slope(r2, k1, k2, k3, k4, k5, k6) > 0) & (denominator > 0)
-        stops = np.flatnonzero(~grows)
-        return float(r2[stops[0]]) if stops.size else float("inf")
+        return _fold(self.distortion)
 
     def project(self, points: np.ndarray, origin: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, np.ndarray]:
         """Return the column and row where camera-frame points are seen.
@@ -154,7 +149,22 @@ class CameraModel:
 
 def _radial(r2, k1, k2, k3, k4, k5, k6):
     """Return the radial factor of the distortion at ``r2``."""
-    return (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    numerator = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    if k4 == k5 == k6 == 0:  # a denominator of 1 divides nothing (finite r2): fewer passes over the points
+        return numerator
+    return numerator / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+
+
+@lru_cache(maxsize=64)
+def _fold(distortion: tuple[float, ...]) -> float:
+    """Return :meth:`CameraModel.fold` of distortion coefficients (cached: a scan of the radial factor)."""
+    k1, k2, _, _, k3, k4, k5, k6 = np.pad(np.asarray(distortion, dtype=np.float64), (0, _TERMS - len(distortion)))
+    r2 = _FOLD_SCAN
+    numerator, denominator = 1 + r2 * (k1 + r2 * (k2 + r2 * k3)), 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    # d(r radial)/dr = radial + 2 r2 d(radial)/d(r2) > 0, and the denominator keeps its sign
+    grows = (numerator * denominator + 2 * r2 * _radial_slope(r2, k1, k2, k3, k4, k5, k6) > 0) & (denominator > 0)
+    stops = np.flatnonzero(~grows)
+    return float(r2[stops[0]]) if stops.size else float("inf")
 
 
 def _radial_slope(r2, k1, k2, k3, k4, k5, k6):

@@ -30,6 +30,7 @@ scores maps against the synthetic camera's truth. The methods:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from functools import cache, partial
 
@@ -127,6 +128,7 @@ _TEXTURE_OUTLIER = 1.5
 _HUBER = 1.345  # Huber threshold, robust standard deviations
 _MAD_SCALE = 1.4826  # median absolute deviation to standard deviation (normal distribution)
 _REMAP_ROW = 1024  # positions per row of the maps given to cv2.remap
+_SMOOTH_ROWS = 64  # rows per band of the range smoothing
 _FEATURE_MARGIN = 4  # pixels: no keypoint this close to an invalid pixel or the border
 _CLIP = 3.0  # local standard deviations mapped to the ends of the 8-bit range
 _RIGID_TOLERANCE = 1e-4  # |R^T R - I| of a pose (poses written with ~5 digits pass; 1e-4 rad ~ 0.05 mm at 0.5 m)
@@ -170,28 +172,46 @@ def _bilinear(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray
     fc = col - c0
     fr = row - r0
     lead = np.broadcast_shapes(image.shape[:-2], col.shape[:-2])
-    flat = np.broadcast_to(image, (*lead, height, width)).reshape(*lead, height * width)
-    base = np.broadcast_to(r0 * width + c0, (*lead, *col.shape[-2:])).reshape(*lead, -1)
-    total = np.zeros(base.shape)
-    for offset, weight in (
-        (0, (1.0 - fr) * (1.0 - fc)),
-        (1, (1.0 - fr) * fc),
-        (width, fr * (1.0 - fc)),
-        (width + 1, fr * fc),
-    ):
-        weight = np.broadcast_to(weight, (*lead, *col.shape[-2:])).reshape(*lead, -1)
-        values = np.take_along_axis(flat, base + offset, axis=-1)
-        total += np.where(weight > 0, values * weight, 0.0)
-    out = total.reshape(*lead, *col.shape[-2:])
-    return np.where(inside, out, np.nan)
+    shape = (*lead, *col.shape[-2:])
+    # the images laid end to end: one flat index per sample, of its top left neighbour
+    flat = np.broadcast_to(image, (*lead, height, width)).ravel()
+    r0 *= width
+    r0 += c0
+    base = r0 + height * width * np.arange(math.prod(lead)).reshape(*lead, 1, 1)
+    gc, gr = 1.0 - fc, 1.0 - fr
+    terms = [
+        (flat[offset:], np.broadcast_to(weight, shape))
+        for offset, weight in ((0, gr * gc), (1, gr * fc), (width, fr * gc), (width + 1, fr * fc))
+    ]
+    total, values = np.zeros(shape), np.empty(shape)
+    for shifted, weight in terms:
+        # the indices are in range; mode="raise" would buffer the output (~3x slower)
+        total += np.multiply(np.take(shifted, base, out=values, mode="clip"), weight, out=values)
+    # a NaN neighbour made its sample NaN even with a zero weight: sum those again without it
+    with np.errstate(invalid="ignore"):
+        again = np.flatnonzero(np.isnan(total) & inside)
+    redone = np.zeros(again.size)
+    at = base.flat[again]
+    for shifted, weight in terms:
+        weight = weight.flat[again]
+        redone += np.where(weight > 0, np.take(shifted, at) * weight, 0.0)
+    total.flat[again] = redone
+    np.copyto(total, np.nan, where=~inside)
+    return total
 
 
-def _warp_kernel(image, map_x, map_y, *valid, origin: tuple[int, int]) -> np.ndarray:
-    """:func:`_bilinear` at sensor positions of an image whose first pixel is sensor ``origin`` (row, col)."""
-    image = np.asarray(image, dtype=np.float64)
+def _warp_kernel(*arrays: np.ndarray, origin: tuple[int, int], count: int) -> np.ndarray:
+    """:func:`_bilinear` of several images at once (their weights computed once) at sensor positions.
+
+    ``arrays``: ``count`` images (..., H, W) whose first pixel is sensor ``origin``
+    (row, col), the maps' columns and rows (..., h, w), and optionally a valid
+    mask (..., H, W) of the images. Returns (..., count, h, w) of float64.
+    """
+    images = np.stack([np.asarray(image, dtype=np.float64) for image in arrays[:count]], axis=-3)
+    map_x, map_y, *valid = arrays[count:]
     if valid:
-        image = np.where(valid[0], image, np.nan)
-    return _bilinear(image, map_x - origin[1], map_y - origin[0])
+        images = np.where(valid[0][..., None, :, :], images, np.nan)
+    return _bilinear(images, (map_x - origin[1])[..., None, :, :], (map_y - origin[0])[..., None, :, :])
 
 
 def _outside_to_nan(col: np.ndarray, row: np.ndarray, columns: np.ndarray, rows: np.ndarray) -> None:
@@ -224,20 +244,31 @@ def _smooth_range(points: np.ndarray, window: int, tolerance: float, relative: f
     if window == 1:
         return points
     height, width = points.shape[:2]
-    distance = np.linalg.norm(points, axis=-1)
+    distance = _norm(points)
     padded = np.pad(distance, window // 2, constant_values=np.nan)
     gap = np.maximum(tolerance, relative * distance)
     total = np.zeros_like(distance)
-    count = np.zeros_like(distance)
-    for dy in range(window):
-        for dx in range(window):
-            neighbour = padded[dy : dy + height, dx : dx + width]
-            with np.errstate(invalid="ignore"):
-                near = np.abs(neighbour - distance) <= gap
-            total += np.where(near, neighbour, 0.0)
-            count += near
+    count = np.zeros(distance.shape, np.min_scalar_type(window * window))
+    # in bands of rows whose buffers stay in the cache across the window's offsets
+    with np.errstate(invalid="ignore"):
+        for top in range(0, height, _SMOOTH_ROWS):
+            rows = slice(top, min(top + _SMOOTH_ROWS, height))
+            apart = np.empty_like(distance[rows])
+            near = np.empty(apart.shape, bool)
+            for dy in range(window):
+                for dx in range(window):
+                    neighbour = padded[rows.start + dy : rows.stop + dy, dx : dx + width]
+                    np.abs(np.subtract(neighbour, distance[rows], out=apart), out=apart)
+                    np.add(total[rows], neighbour, out=total[rows], where=np.less_equal(apart, gap[rows], out=near))
+                    count[rows] += near
     with np.errstate(invalid="ignore", divide="ignore"):
         return points * (total / count / distance)[..., None]
+
+
+def _norm(vectors: np.ndarray) -> np.ndarray:
+    """Return the length of vectors (..., 3), as ``np.linalg.norm(vectors, axis=-1)`` does it, ~4x faster."""
+    x, y, z = (vectors[..., axis] for axis in range(3))
+    return np.sqrt(x * x + y * y + z * z)
 
 
 def _project(points: np.ndarray, transform: np.ndarray, camera: CameraModel):
@@ -260,7 +291,7 @@ def _project(points: np.ndarray, transform: np.ndarray, camera: CameraModel):
         Range of each point from camera B's centre.
     """
     local = points @ transform[:3, :3].T + transform[:3, 3]
-    return *camera.project(local), np.linalg.norm(local, axis=-1)
+    return *camera.project(local), _norm(local)
 
 
 def _nearest(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
@@ -300,7 +331,7 @@ def _pose_map(points, transform, camera, view_points, columns, rows, tolerance, 
     """
     col, row, expected = _project(points, transform, camera)
     _outside_to_nan(col, row, columns, rows)
-    measured = _nearest(np.linalg.norm(view_points, axis=-1), col - columns[0], row - rows[0])
+    measured = _nearest(_norm(view_points), col - columns[0], row - rows[0])
     residual = measured - expected
     with np.errstate(invalid="ignore"):
         hidden = residual < -np.maximum(tolerance, relative * expected)
@@ -1029,7 +1060,7 @@ def _pose_refiner(ingest, xyz, points, ref, grid, opts, camera, recorded):
     # with the parallax between views, and the surfaces beside them are seen differently
     inside = np.minimum(
         cv2.distanceTransform(np.isfinite(normals[..., 0]).astype(np.uint8), cv2.DIST_L2, 5),
-        _interior(np.linalg.norm(points, axis=-1), *tolerances),
+        _interior(_norm(points), *tolerances),
     )
     texture = _texture(intensity[ref], valid[ref], _REFINE_CONTRAST, np.float32)
     sample = points[::stride, ::stride].reshape(-1, 3)
@@ -1048,7 +1079,7 @@ def _pose_refiner(ingest, xyz, points, ref, grid, opts, camera, recorded):
     def view_data(index: int):
         """Return a view's sampled points, texture stacks (:func:`_sampled`) per level and median range."""
         source = xyz[index][::stride, ::stride].reshape(-1, 3)
-        distance = np.linalg.norm(xyz[index], axis=-1)
+        distance = _norm(xyz[index])
         view_texture = _texture(intensity[index], valid[index], _REFINE_CONTRAST, np.float32)
         view_inside = _interior(distance, *tolerances)
         sampled = [
@@ -1529,32 +1560,42 @@ def warp(data: xr.DataArray, maps: xr.Dataset, *, valid: xr.DataArray | None = N
         grid, and where any neighbour with a non-zero weight is missing (never
         extrapolated, no bleeding of missing pixels). Lazy on dask input.
     """
-    for name, arr in (("data", data), ("valid", valid)):
+    return _warped([data], maps, valid)[0]
+
+
+def _warped(images: list[xr.DataArray], maps: xr.Dataset, valid: xr.DataArray | None) -> list[xr.DataArray]:
+    """:func:`warp` of images on one grid at once: their interpolation weights are computed once."""
+    for name, arr in (*(("data", image) for image in images), ("valid", valid)):
         if arr is not None and set(arr.dims) != {"view", "y", "x"}:
             raise ValueError(f"warp: {name} must have dims (view, y, x), got {arr.dims}")
+    data = images[0]
     if list(data["view"].values) != list(maps["view"].values):
         raise ValueError(
             f"warp: data views {list(data['view'].values)} differ from the maps' {list(maps['view'].values)}"
         )
     origin = (int(_sensor_indices(data["y"], "data y")[0]), int(_sensor_indices(data["x"], "data x")[0]))
-    dtype = data.dtype if np.issubdtype(data.dtype, np.floating) else np.float64
     source = {"y": "source_y", "x": "source_x"}
-    args = [data.rename(source), maps["map_x"], maps["map_y"]]
-    core = [["source_y", "source_x"], ["y", "x"], ["y", "x"]]
+    args = [*(image.rename(source) for image in images), maps["map_x"], maps["map_y"]]
+    core = [*(["source_y", "source_x"] for _ in images), ["y", "x"], ["y", "x"]]
     if valid is not None:
         args.append(valid.rename(source))
         core.append(["source_y", "source_x"])
     out = xr.apply_ufunc(
-        lambda *arrays: _warp_kernel(*arrays, origin=origin).astype(dtype),
+        partial(_warp_kernel, origin=origin, count=len(images)),
         *args,
         input_core_dims=core,
-        output_core_dims=[["y", "x"]],
+        output_core_dims=[["layer", "y", "x"]],
         dask="parallelized",
-        output_dtypes=[dtype],
-        dask_gufunc_kwargs={"allow_rechunk": True},
+        output_dtypes=[np.float64],
+        dask_gufunc_kwargs={"allow_rechunk": True, "output_sizes": {"layer": len(images)}},
     )
-    out.attrs = dict(data.attrs)
-    return out.transpose("view", "y", "x").rename(data.name)
+    warped = []
+    for layer, image in enumerate(images):
+        dtype = image.dtype if np.issubdtype(image.dtype, np.floating) else np.float64
+        one = out.isel(layer=layer).astype(dtype)
+        one.attrs = dict(image.attrs)
+        warped.append(one.transpose("view", "y", "x").rename(image.name))
+    return warped
 
 
 def register(ds: xr.Dataset, maps: xr.Dataset) -> xr.Dataset:
@@ -1579,14 +1620,13 @@ def register(ds: xr.Dataset, maps: xr.Dataset) -> xr.Dataset:
     if missing:
         raise ValueError(f"register: the dataset lacks {missing}; it needs reflectance and aoi (view, y, x)")
     mask = ds["valid"] if "valid" in ds else None
-    out = xr.Dataset({name: warp(ds[name], maps, valid=mask) for name in ("reflectance", "aoi")})
-    out["valid"] = (np.isfinite(out["reflectance"]) & np.isfinite(out["aoi"])).assign_attrs(
+    reflectance, aoi = _warped([ds["reflectance"], ds["aoi"]], maps, mask)
+    valid = (np.isfinite(reflectance) & np.isfinite(aoi)).assign_attrs(
         long_name="registered pixel has reflectance and AOI"
     )
-    out["map_x"] = maps["map_x"]
-    out["map_y"] = maps["map_y"]
-    out.attrs = {**ds.attrs, **maps.attrs}
-    return out
+    # one Dataset built at once: each added variable would align the whole Dataset again
+    variables = {"reflectance": reflectance, "aoi": aoi, "valid": valid, "map_x": maps["map_x"], "map_y": maps["map_y"]}
+    return xr.Dataset(variables, attrs={**ds.attrs, **maps.attrs})
 
 
 def registration_error(maps: xr.Dataset, u_ref: xr.DataArray, v_ref: xr.DataArray) -> xr.DataArray:
