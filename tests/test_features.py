@@ -278,6 +278,21 @@ def test_variability_measures_the_texture():
     assert np.sqrt(np.mean(out[3:-3, 3:-3] ** 2)) == pytest.approx(0.02, rel=0.03)
 
 
+@pytest.mark.parametrize("chunks", [None, {"y": 7, "x": 11}])
+def test_variability_is_the_local_std_of_the_corrected_reflectance(chunks):
+    reflectance, aoi = lambertian_view(shape=(30, 40), texture=0.02)
+    aoi = aoi.where(aoi["x"] != aoi["x"][5])
+    noise = xr.full_like(reflectance, 0.01).where(reflectance["y"] != reflectance["y"][3])
+    corrected = (reflectance / np.cos(aoi)).where(np.cos(aoi) > 0)
+    expected = local_std(corrected, noise_variance=(corrected * noise) ** 2)
+    if chunks:
+        reflectance, aoi, noise = (a.chunk(chunks) for a in (reflectance, aoi, noise))
+    out = variability(reflectance, aoi, relative_noise=noise)
+    assert out.attrs["noise_corrected"] == 1
+    assert out.attrs["min_count"] == expected.attrs["min_count"]
+    np.testing.assert_allclose(out.values, expected.values, rtol=1e-12, atol=1e-15)
+
+
 def test_variability_needs_one_grid():
     reflectance, aoi = lambertian_view()
     with pytest.raises(ValueError, match="same"):

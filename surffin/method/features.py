@@ -181,6 +181,19 @@ def _local_std_image(
     return np.where(keep, np.sqrt(np.maximum(variance, 0.0)), np.nan)
 
 
+def _variability_image(
+    reflectance: np.ndarray, aoi: np.ndarray, relative_noise: np.ndarray | None = None, **kwargs
+) -> np.ndarray:
+    """:func:`_local_std_image` (H, W) of the Lambert-corrected reflectance ``R / cos(aoi)`` (:func:`variability`).
+
+    With ``relative_noise``, the variance of the corrected reflectance's noise is taken out.
+    """
+    cosine = np.cos(aoi.astype(np.float64))
+    corrected = np.where(cosine > 0, reflectance / cosine, np.nan)
+    variance = None if relative_noise is None else (corrected * relative_noise) ** 2
+    return _local_std_image(corrected, variance, **kwargs)
+
+
 def _per_image(*data: np.ndarray, kernel, out_dtype, **kwargs) -> np.ndarray:
     """``kernel`` applied to every (y, x) image of the arrays ``data`` (..., y, x) of one shape.
 
@@ -505,17 +518,20 @@ def residual_correlation(
     usable = (image["status"].values == 0) & (image["n_views"].values > 2)
     with np.errstate(invalid="ignore"):
         residual = r - scattering_model(theta, image["R0"].values[None], image["n"].values[None])
-    numerator = np.zeros((2 * max_lag + 1,) * 2)
-    pairs = np.zeros_like(numerator)
     # circular autocorrelation by FFT; max_lag zeros of padding keep the wrap-around out of the lags kept
     shape = [scipy.fft.next_fast_len(length + max_lag, real=True) for length in residual.shape[1:]]
     lags = np.arange(-max_lag, max_lag + 1)
     index = np.ix_(lags % shape[0], lags % shape[1])
 
-    def autocorrelation(values):
-        spectrum = scipy.fft.rfft2(values, shape)
-        return scipy.fft.irfft2(spectrum * spectrum.conj(), shape)[index]
+    def autocorrelation(images):
+        """Sum over ``images`` (image, y, x) of each image's autocorrelation at the lags kept."""
+        if not images:
+            return np.zeros((lags.size, lags.size))
+        spectrum = scipy.fft.rfft2(np.stack(images), shape)
+        power = (spectrum.real * spectrum.real + spectrum.imag * spectrum.imag).sum(axis=0)
+        return scipy.fft.irfft2(power, shape)[index]
 
+    kept, masks = [], []
     for view in residual:
         ok = usable & np.isfinite(view)
         if not ok.any():
@@ -523,8 +539,10 @@ def residual_correlation(
         median = np.median(view[ok])
         spread = 1.4826 * np.median(np.abs(view[ok] - median))
         ok &= np.abs(view - median) <= _RESIDUAL_CLIP * spread
-        numerator += autocorrelation(np.where(ok, view, 0.0))
-        pairs += np.round(autocorrelation(ok.astype(np.float64)))
+        kept.append(np.where(ok, view, 0.0))
+        masks.append(ok.astype(np.float64))
+    numerator = autocorrelation(kept)
+    pairs = np.round(autocorrelation(masks))
     centre = (max_lag, max_lag)
     covariance = np.full_like(numerator, np.nan)
     np.divide(numerator, pairs, out=covariance, where=pairs > 0)
@@ -621,12 +639,7 @@ def local_std(
         or the box holds too few finite pixels. Attrs ``window_size``, ``ddof``,
         ``min_count``, ``noise_corrected``. Lazy on dask input.
     """
-    size = check_size(size)
-    if min_count is None:
-        min_count = math.ceil(DEFAULT_MIN_FRACTION * size * size)
-    for name, value in (("ddof", ddof), ("min_count", min_count)):
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:
-            raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
+    size, ddof, min_count = _std_window(size, ddof, min_count)
     images = _as_float(da, "da")
     if noise_variance is not None:
         try:
@@ -634,24 +647,30 @@ def local_std(
         except ValueError as exc:
             raise ValueError(f"local_std: da and noise_variance must be on the same grid ({exc})") from exc
     out = image_filter(
-        images,
-        _local_std_image,
-        size // 2,
-        np.nan,
-        np.float64,
-        size=size,
-        ddof=int(ddof),
-        min_count=int(min_count),
+        images, _local_std_image, size // 2, np.nan, np.float64, size=size, ddof=ddof, min_count=min_count
     )
     out.attrs = {
         **({"units": da.attrs["units"]} if "units" in da.attrs else {}),
         "long_name": f"local standard deviation over {size}x{size} pixels",
-        "window_size": size,
-        "ddof": int(ddof),
-        "min_count": int(min_count),
-        "noise_corrected": int(noise_variance is not None),
+        **_std_attrs(size, ddof, min_count, noise_variance is not None),
     }
     return out
+
+
+def _std_window(size, ddof, min_count) -> tuple[int, int, int]:
+    """Check the window arguments of :func:`local_std`; return ``size``, ``ddof``, ``min_count`` (or its default)."""
+    size = check_size(size)
+    if min_count is None:
+        min_count = math.ceil(DEFAULT_MIN_FRACTION * size * size)
+    for name, value in (("ddof", ddof), ("min_count", min_count)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:
+            raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
+    return size, int(ddof), int(min_count)
+
+
+def _std_attrs(size: int, ddof: int, min_count: int, noise_corrected: bool) -> dict:
+    """Attrs of a :func:`local_std` result that describe its window."""
+    return {"window_size": size, "ddof": ddof, "min_count": min_count, "noise_corrected": int(noise_corrected)}
 
 
 def select_roi(obj: xr.DataArray | xr.Dataset, roi: Roi) -> xr.DataArray | xr.Dataset:
@@ -783,15 +802,23 @@ def variability(
         raise ValueError(
             f"variability: reflectance, aoi and relative_noise must be on the same (y, x) grid ({exc})"
         ) from exc
-    cosine = np.cos(aoi.astype(np.float64))
-    corrected = (reflectance / cosine).where(cosine > 0)
-    variance = (corrected * noise[0]) ** 2 if noise else None
-    out = local_std(corrected, size, ddof=ddof, min_count=min_count, noise_variance=variance)
-    out.attrs.update(
-        units="1",
-        long_name=f"spatial reflectance variability: local standard deviation of R / cos(AOI), {size}x{size} pixels"
-        + (", camera noise taken out" if noise else ""),
+    size, ddof, min_count = _std_window(size, ddof, min_count)
+    out = image_filter(
+        [reflectance, aoi, *noise],
+        _variability_image,
+        size // 2,
+        np.nan,
+        np.float64,
+        size=size,
+        ddof=ddof,
+        min_count=min_count,
     )
+    out.attrs = {
+        "units": "1",
+        "long_name": f"spatial reflectance variability: local standard deviation of R / cos(AOI), {size}x{size} pixels"
+        + (", camera noise taken out" if noise else ""),
+        **_std_attrs(size, ddof, min_count, bool(noise)),
+    }
     return out
 
 

@@ -39,6 +39,8 @@ _MAX_ITER = 40
 _BLOCK = 16384
 _FLOAT_OUTPUTS = ("R0", "n", "R0_sigma", "n_sigma", "rms")
 _TOL = 1e-12
+# Newton converges quadratically here: after a step below _STEP_TOL n, n is within ~1e-12 n of the optimum.
+_STEP_TOL = 1e-6
 
 #: Meaning of the ``status`` codes of a fit.
 FIT_STATUS = {
@@ -66,56 +68,75 @@ def scattering_model(theta, r0, n):
     return r0 * _model_g(np.asarray(n, dtype=float), np.asarray(theta, dtype=float))
 
 
-def _log_cos(n, theta):
-    """tan(a theta) and log cos(a theta), a = 2 - 1/n, and where a theta < pi/2."""
+def _model_g(n, theta):
+    """G = cos(a theta)^n, a = 2 - 1/n, zero where a theta >= pi/2 (no return)."""
     angle = (2.0 - 1.0 / n) * theta
     t = np.tan(angle)
-    return t, -0.5 * np.log1p(t * t), angle < 0.5 * np.pi
-
-
-def _model_g(n, theta):
-    """G = cos(a theta)^n, zero where a theta >= pi/2 (no return)."""
-    _, logcos, lit = _log_cos(n, theta)
-    g = np.exp(n * logcos)
+    g = np.exp(-0.5 * n * np.log1p(t * t))
+    lit = angle < 0.5 * np.pi
     return g if lit.all() else g * lit
 
 
-def _model_terms(n, theta):
-    """G = cos(a theta)^n and the derivatives of log g w.r.t. n.
+def _model_terms(n, theta, theta2=None):
+    """G = cos(a theta)^n and h = d log g / dn; with ``theta2`` = theta^2 also dh/dn.
 
-    Returns ``g``, ``h = d log g / dn`` and ``dh = dh/dn``; all three are zero
-    where a theta >= pi/2 (no return).
+    For the fit's own n, at which every view of a pixel is lit (a theta < pi/2):
+    no view is masked. n (pixel,), theta and theta2 (view, pixel); returns
+    fresh (view, pixel) arrays.
     """
-    t, logcos, lit = _log_cos(n, theta)
-    g = np.exp(n * logcos)
-    h = logcos - theta * t / n
-    dh = -(theta * theta) * (1.0 + t * t) / (n * n * n)
-    if lit.all():
-        return g, h, dh
-    return g * lit, h * lit, dh * lit
+    t = np.multiply(theta, 2.0 - 1.0 / n)
+    np.tan(t, out=t)
+    t2 = t * t
+    minus_log_cos = np.log1p(t2)
+    minus_log_cos *= 0.5
+    g = np.multiply(minus_log_cos, -n)
+    np.exp(g, out=g)
+    h = np.multiply(theta, t, out=t)
+    h *= -1.0 / n
+    h -= minus_log_cos
+    if theta2 is None:
+        return g, h
+    dh = t2
+    dh += 1.0
+    dh *= theta2
+    dh *= -1.0 / (n * n * n)
+    return g, h, dh
 
 
 def _reduced_cost(n, r, theta, w):
-    """F(n) of the variable projection, up to the constant sum R^2; r, theta, w (view, pixel), n (pixel,)."""
-    g = _model_g(n, theta) * w
-    p = np.sum(r * g, axis=0)
-    q = np.sum(g * g, axis=0)
+    """F(n) of the variable projection, up to the constant sum R^2, at one n for every pixel.
+
+    r, theta, w (view, pixel), n a float. Views that n does not light are not
+    masked: the caller discards such n.
+    """
+    g = np.multiply(theta, 2.0 - 1.0 / n)
+    np.tan(g, out=g)
+    np.multiply(g, g, out=g)
+    np.log1p(g, out=g)
+    np.multiply(g, -0.5 * n, out=g)
+    np.exp(g, out=g)
+    p = np.einsum("vp,vp->p", r, g)
+    np.multiply(g, g, out=g)
+    q = np.einsum("vp,vp->p", g, w)
     with np.errstate(invalid="ignore", divide="ignore"):
         return -np.where(q > 0, p * p / q, 0.0)
 
 
-def _derivatives(n, r, theta, w):
-    """First and second derivative of F(n); r, theta, w (view, pixel), n (pixel,)."""
-    g, h, dh = _model_terms(n, theta)
-    g = g * w
-    rg = r * g
-    g2 = g * g
+def _derivatives(n, r, theta, theta2, w):
+    """First and second derivative of F(n); r, theta, theta2 = theta^2, w (view, pixel), n (pixel,)."""
+    g, h, dh = _model_terms(n, theta, theta2)
+    rg = np.multiply(r, g)
+    g2 = np.multiply(g, g, out=g)
+    g2 *= w
     p = rg.sum(axis=0)
     q = g2.sum(axis=0)
-    dp = (rg * h).sum(axis=0)
-    dq = 2.0 * (g2 * h).sum(axis=0)
-    d2p = (rg * (h * h + dh)).sum(axis=0)
-    d2q = 2.0 * (g2 * (2.0 * h * h + dh)).sum(axis=0)
+    dp = np.einsum("vp,vp->p", rg, h)
+    dq = 2.0 * np.einsum("vp,vp->p", g2, h)
+    hh = np.multiply(h, h, out=h)
+    dh += hh
+    d2p = np.einsum("vp,vp->p", rg, dh)
+    dh += hh
+    d2q = 2.0 * np.einsum("vp,vp->p", g2, dh)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         d1 = -2.0 * p * dp / q + p * p * dq / (q * q)
         d2 = (
@@ -128,13 +149,13 @@ def _derivatives(n, r, theta, w):
 
 
 def _solve_n(r, theta, w):
-    """Minimise F(n) per pixel; returns n and a converged flag (pixel,)."""
+    """Minimise F(n) per pixel; returns n and a converged flag (pixel,); theta is 0 where w is."""
     npix = r.shape[1]
     # Above n_lit every view of the pixel that has data is lit (a theta < pi/2): beyond it the
     # model returns nothing at the largest angle and F(n) is flat, a false minimum when the
     # data there are small.
-    n_lit = _n_lit(np.where(w > 0, theta, 0.0).max(axis=0))
-    cost = np.stack([_reduced_cost(np.full(npix, value), r, theta, w) for value in _START_GRID])
+    n_lit = _n_lit(theta.max(axis=0))  # theta is 0 where w is
+    cost = np.stack([_reduced_cost(value, r, theta, w) for value in _START_GRID])
     cost[_START_GRID[:, None] >= n_lit] = np.inf
     best = np.argmin(cost, axis=0)
     lo = np.where(best > 0, _START_GRID[np.maximum(best - 1, 0)], _N_MIN)
@@ -145,25 +166,26 @@ def _solve_n(r, theta, w):
     # converged: gathering them costs more than iterating on a few extra ones.
     idx = np.arange(npix)
     ra, ta, wa, na = r, theta, w, n.copy()
+    t2a = theta * theta
     live = np.ones(npix, dtype=bool)
     for _ in range(_MAX_ITER):
         if not live.any():
             break
-        d1, d2 = _derivatives(na, ra, ta, wa)
+        d1, d2 = _derivatives(na, ra, ta, t2a, wa)
         rising = d1 > 0
         hi_new = np.where(rising, na, hi)
         lo_new = np.where(rising, lo, na)
         with np.errstate(invalid="ignore", divide="ignore"):
             newton = na - d1 / d2
         ok = (d2 > 0) & (newton >= lo_new) & (newton <= hi_new)
-        done = (ok & (np.abs(newton - na) <= _TOL * na)) | (d1 == 0) | ((hi_new - lo_new) <= _TOL * na)
+        done = (ok & (np.abs(newton - na) <= _STEP_TOL * na)) | (d1 == 0) | ((hi_new - lo_new) <= _TOL * na)
         na = np.where(live, np.where(ok, newton, 0.5 * (lo_new + hi_new)), na)
         lo, hi = np.where(live, lo_new, lo), np.where(live, hi_new, hi)
         converged[idx[live & done]] = True
         live &= ~done
         if live.sum() < 0.5 * live.size:
             n[idx] = na
-            idx, ra, ta, wa = idx[live], ra[:, live], ta[:, live], wa[:, live]
+            idx, ra, ta, t2a, wa = idx[live], ra[:, live], ta[:, live], t2a[:, live], wa[:, live]
             na, lo, hi, live = na[live], lo[live], hi[live], live[live]
     n[idx] = na
     at_bound = (n <= _START_GRID[0]) | (n >= np.minimum(N_MAX, n_lit))
@@ -183,8 +205,8 @@ def _n_lit(theta_max):
 def _fit_pixels(r, theta, w, n_views):
     """Fit a block of pixels that all pass the view and spread checks; arrays (view, pixel)."""
     n, conv = _solve_n(r, theta, w)
-    g, h, _ = _model_terms(n, theta)
-    g = g * w
+    g, h = _model_terms(n, theta)
+    g *= w
     q = (g * g).sum(axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
         r0 = (r * g).sum(axis=0) / q

@@ -169,12 +169,10 @@ def features_stage(
     spatial correlation of the fit's residuals over the item
     (:func:`surffin.method.features.residual_correlation`).
     """
-    fit = fit_scattering(
-        registered["reflectance"].chunk({"view": -1}),
-        registered["aoi"].chunk({"view": -1}),
-        min_views=min_views,
-        min_spread=min_spread,
-    ).persist()
+    observed = registered[["reflectance", "aoi"]]
+    if observed.chunks:  # dask: each pixel's views in one chunk (in memory, an item needs no graph)
+        observed = observed.chunk({"view": -1})
+    fit = fit_scattering(observed["reflectance"], observed["aoi"], min_views=min_views, min_spread=min_spread).persist()
     correlation = residual_correlation(registered["reflectance"], registered["aoi"], fit, max_lag=size - 1)
     order = views_by_incidence(aoi["aoi"], Roi.from_mapping(roi))
     noise = reflectance.get("reflectance_noise")
