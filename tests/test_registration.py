@@ -614,6 +614,57 @@ def test_clouds_flag_a_view_whose_texture_disagrees_with_the_others(stepped):
     assert flagged["v02"]["texture_deviation"] > 1.5 * flagged["v01"]["texture_deviation"]
 
 
+def two_blocks(name, blocks, design):
+    """Two textured blocks 2 cm high on a board, seen without poses: the item, its true poses and its maps.
+
+    ``name`` names the item; ``blocks``: (name, x, y, size, turn) of each, metres and radians (the names key
+    their textures); ``design``: (target x, distance, tilt deg, azimuth) of each view, the first the reference
+    view looking down at the board's middle.
+    """
+    faces = [plane_face("board", TEXTURE)]
+    for k, (block, x, y, size, turn) in enumerate(blocks):
+        faces += box_faces(block, (x, y), size, 0.02, turn, TEXTURE, k)
+    poses = [look_at_pose((x, 0.0, -0.02), d, np.deg2rad(t), a) for x, d, t, a in design]
+    item = rendered_item(name, faces, poses)
+    return item, poses, registration_maps(item.ingest.drop_vars("pose"), method="clouds")
+
+
+def test_clouds_fall_back_to_the_reference_view_when_a_chain_step_does_not_refine():
+    # two specimens 22 cm apart on a board: the reference view sees both, v01 the left one, v02 the right one.
+    # v02 is nearer v01 than the reference view in orientation, so the chain aligns it with v01 first; but the two
+    # share no relief, none of those candidates refines, and the candidates aligned with the reference view are tried
+    blocks = (("left", -0.1, 0.0, 0.1, 0.3), ("right", 0.12, 0.0, 0.06, -0.5))
+    item, poses, maps = two_blocks("apart", blocks, ((0.0, 0.5, 0, 0.0), (-0.1, 0.3, 15, 0.3), (0.12, 0.28, 25, 0.3)))
+    # the board's normal in each camera's frame: the chain's orientations (v01 nearest to v02)
+    normals = np.array([pose[:3, :3].T @ [0.0, 0.0, -1.0] for pose in poses])
+    angles = np.arccos(np.clip(normals @ normals.T, -1.0, 1.0))
+    assert angles[1, 0] < angles[2, 0] and angles[2, 1] < angles[2, 0]
+    error = map_error(maps, item.truth_x, item.truth_y)
+    for index in (1, 2):
+        diagnostics = maps.attrs["diagnostics"][f"v{index:02d}"]
+        assert diagnostics["aligned_with"] == "v00" and diagnostics["constrained"] == 6
+        # measured: median 0.03 / 0.06 px, 95th percentile 0.10 / 0.27 px from the simulator's truth; the poses
+        # 0.5 / 0.2 mm and 0.09 / 0.07 deg from the true ones (2 mm pixels)
+        assert np.nanmedian(error[index]) < 0.1
+        assert np.nanpercentile(error[index], 95) < 0.5
+        assert np.isfinite(error[index]).mean() > 0.3
+        residual = np.linalg.solve(np.linalg.solve(poses[0], poses[index]), np.array(diagnostics["pose"]))
+        assert np.linalg.norm(residual[:3, 3]) < 1e-3
+        assert np.rad2deg(Rotation.from_matrix(residual[:3, :3]).magnitude()) < 0.2
+
+
+def test_clouds_search_a_texture_outlier_again_from_the_reference_view():
+    # two blocks of one size: the chain's step from v01 (which sees only the left one) puts v02 on the wrong
+    # block (64 px off, its texture deviation 3.6x v01's); searched again, from the reference view, it is right
+    blocks = (("b0", -0.1, 0.0, 0.08, 0.3), ("b1", 0.11, 0.02, 0.08, -0.5))
+    item, _, maps = two_blocks("two", blocks, ((0.0, 0.5, 0, 0.0), (-0.1, 0.3, 15, 0.0), (0.11, 0.3, 25, 0.0)))
+    diagnostics = maps.attrs["diagnostics"]["v02"]
+    assert diagnostics["texture_outlier"] and diagnostics["searched_again"]
+    assert diagnostics["aligned_with"] == "v00"
+    error = map_error(maps, item.truth_x, item.truth_y)
+    assert np.nanmedian(error[2]) < 0.1 and np.nanmedian(error[1]) < 0.1  # measured 0.05 and 0.03 px
+
+
 def test_clouds_need_relief(planar):
     with pytest.raises(RegistrationError, match=r"item 'wall', view 'v01'.*dominant plane.*method='homography'"):
         registration_maps(planar.ingest.drop_vars("pose"), method="clouds")

@@ -145,56 +145,65 @@ _MAP_ATTRS = {
 
 
 def _bilinear(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
-    """NaN-aware bilinear samples of images at sub-pixel array positions.
+    """NaN-aware bilinear samples of multi-channel images at sub-pixel array positions.
 
     Parameters
     ----------
-    image : (..., H, W) ndarray
-        NaN marks a missing pixel; H, W >= 2.
+    image : (..., C, H, W) ndarray
+        C channels sampled at the same positions (one set of indices and weights
+        for all); NaN marks a missing value; H, W >= 2.
     col, row : (..., h, w) ndarray
         Array positions (0 = first column / row), leading dims broadcasting
         against ``image``'s; NaN = no sample.
 
     Returns
     -------
-    (..., h, w) ndarray of float64
+    (..., C, h, w) ndarray of float64
         NaN where the position is NaN or outside ``[0, W - 1] x [0, H - 1]``, or
         where a neighbour with a non-zero weight is NaN (a missing pixel never
         bleeds into its neighbours, and nothing is extrapolated).
     """
-    height, width = image.shape[-2:]
+    channels, height, width = image.shape[-3:]
     with np.errstate(invalid="ignore"):
         inside = (col >= 0) & (col <= width - 1) & (row >= 0) & (row <= height - 1)
-    col = np.where(inside, col, 0.0)
-    row = np.where(inside, row, 0.0)
-    c0 = np.minimum(np.floor(col), width - 2).astype(np.intp)
-    r0 = np.minimum(np.floor(row), height - 2).astype(np.intp)
-    fc = col - c0
-    fr = row - r0
-    lead = np.broadcast_shapes(image.shape[:-2], col.shape[:-2])
+    # in float64 whatever the positions' type: the weights are products of the fractions
+    fc, fr = (np.where(inside, value, 0.0).astype(np.float64, copy=False) for value in (col, row))
+    # c0, r0: the top left neighbour, as floats (exact integers)
+    c0, r0 = np.floor(fc), np.floor(fr)
+    np.minimum(c0, width - 2, out=c0)
+    np.minimum(r0, height - 2, out=r0)
+    lead = np.broadcast_shapes(image.shape[:-3], col.shape[:-2])
     shape = (*lead, *col.shape[-2:])
-    # the images laid end to end: one flat index per sample, of its top left neighbour
-    flat = np.broadcast_to(image, (*lead, height, width)).ravel()
-    r0 *= width
-    r0 += c0
-    base = r0 + height * width * np.arange(math.prod(lead)).reshape(*lead, 1, 1)
+    # the images laid end to end: one flat index per sample, of its top left neighbour in the first channel
+    flat = np.broadcast_to(image, (*lead, channels, height, width)).ravel()
+    size = height * width
+    base = (r0 * width + c0).astype(np.intp) + channels * size * np.arange(math.prod(lead)).reshape(*lead, 1, 1)
+    fc -= c0
+    fr -= r0
     gc, gr = 1.0 - fc, 1.0 - fr
     terms = [
-        (flat[offset:], np.broadcast_to(weight, shape))
+        (offset, np.broadcast_to(weight, shape))
         for offset, weight in ((0, gr * gc), (1, gr * fc), (width, fr * gc), (width + 1, fr * fc))
     ]
-    total, values = np.zeros(shape), np.empty(shape)
-    for shifted, weight in terms:
-        # the indices are in range; mode="raise" would buffer the output (~3x slower)
-        total += np.multiply(np.take(shifted, base, out=values, mode="clip"), weight, out=values)
+    total, values = np.zeros((*lead, channels, *col.shape[-2:])), np.empty(shape)
+    for channel in range(channels):
+        for offset, weight in terms:
+            # the indices are in range; mode="raise" would buffer the output (~3x slower)
+            np.take(flat[channel * size + offset :], base, out=values, mode="clip")
+            total[..., channel, :, :] += np.multiply(values, weight, out=values)
     # a NaN neighbour made its sample NaN even with a zero weight: sum those again without it
+    inside = np.broadcast_to(inside, shape)[..., None, :, :]
     with np.errstate(invalid="ignore"):
         again = np.flatnonzero(np.isnan(total) & inside)
+    pixels = col.shape[-2] * col.shape[-1]
+    rest, pixel = np.divmod(again, pixels)
+    sample, channel = np.divmod(rest, channels)
+    sample = sample * pixels + pixel
+    at = base.flat[sample] + channel * size
     redone = np.zeros(again.size)
-    at = base.flat[again]
-    for shifted, weight in terms:
-        weight = weight.flat[again]
-        redone += np.where(weight > 0, np.take(shifted, at) * weight, 0.0)
+    for offset, weight in terms:
+        weight = weight.flat[sample]
+        redone += np.where(weight > 0, flat[at + offset] * weight, 0.0)
     total.flat[again] = redone
     np.copyto(total, np.nan, where=~inside)
     return total
@@ -211,7 +220,7 @@ def _warp_kernel(*arrays: np.ndarray, origin: tuple[int, int], count: int) -> np
     map_x, map_y, *valid = arrays[count:]
     if valid:
         images = np.where(valid[0][..., None, :, :], images, np.nan)
-    return _bilinear(images, (map_x - origin[1])[..., None, :, :], (map_y - origin[0])[..., None, :, :])
+    return _bilinear(images, map_x - origin[1], map_y - origin[0])
 
 
 def _outside_to_nan(col: np.ndarray, row: np.ndarray, columns: np.ndarray, rows: np.ndarray) -> None:
@@ -299,7 +308,9 @@ def _nearest(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
     known = np.isfinite(col) & np.isfinite(row)
     c = np.rint(np.where(known, col, 0.0)).astype(np.intp)
     r = np.rint(np.where(known, row, 0.0)).astype(np.intp)
-    return np.where(known, image[r, c], np.nan)
+    r *= image.shape[1]
+    r += c
+    return np.where(known, np.take(image, r), np.nan)
 
 
 def _pose_map(points, transform, camera, view_points, columns, rows, tolerance, relative):
@@ -1276,10 +1287,10 @@ def _pose_estimator(xyz: np.ndarray, ref: int, views: list, item: str, tolerance
             return transform, info
         found[index] = transform, {**info, "texture_outlier": True}
         where = f"item {item!r}, view {views[index]!r}"
+        # every view but the one the first pose was aligned with (its candidates were tried), the reference view too
+        anchors = [anchor for anchor in range(len(views)) if anchor != index and views[anchor] != info["aligned_with"]]
         try:
-            transform, again = searched(
-                index, [anchor for anchor in range(len(views)) if anchor not in (index, ref)], where
-            )
+            transform, again = searched(index, anchors, where)
         except RegistrationError:  # no better pose from there: the first one stays
             return found[index]
         if again["texture_deviation"] < info["texture_deviation"]:
