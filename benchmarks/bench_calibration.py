@@ -1,6 +1,7 @@
 """Speed and accuracy of the radiometric calibration (surffin.method.calibration) on the paper campaign.
 
-Run by hand: ``python benchmarks/bench_calibration.py [--campaign DIR] [--views N] [--repeat N]``.
+Run by hand: ``python benchmarks/bench_calibration.py [--campaign DIR] [--views N] [--repeat N]
+[--against OLD.py]``.
 
 The campaign: ``--campaign`` (a rendered ``paper`` preset with its truth beside it in
 ``<DIR>-truth``), by default ``/tmp/clone/data/raw`` when it exists, else the paper preset
@@ -22,11 +23,17 @@ counterpart). Then the accuracy against the truth: k, and the reflectance of a h
 view (not in the fit, through the calibration's residual correction) against rho_wall cos(theta)
 with theta from the view's pose, and the AOI error of that view (the estimated AOI enters the
 fit and the reflectance).
+
+With ``--against OLD.py`` (a copy of an earlier ``surffin/method/calibration.py``), only this:
+the CPU time of ``calibrate`` on the campaign (all its wall views) and of its parts
+``fit_calibration`` and ``fit_correction``, medians of ``--repeat`` runs of each version
+alternately in this process, their ratios, and how far the two calibrations differ.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import tempfile
 import time
 from pathlib import Path
@@ -36,6 +43,7 @@ import xarray as xr
 from scipy.optimize import least_squares
 
 import surffin
+import surffin.method.calibration
 from surffin.method.calibration import (
     TERMS,
     WallStatistics,
@@ -121,6 +129,72 @@ def scipy_reference(raw: np.ndarray, start) -> tuple[np.ndarray, float]:
     return out, (time.perf_counter() - begin) / intensity.shape[1]
 
 
+def cpu_parts(module, camp) -> tuple[dict[str, float], xr.Dataset]:
+    """CPU seconds of ``module.calibrate(camp)`` and of its calls of its parts; the calibration.
+
+    ``module`` is a version of :mod:`surffin.method.calibration`; its ``fit_calibration`` and
+    ``fit_correction`` are wrapped for the run to add up their CPU time.
+    """
+    parts = ("fit_calibration", "fit_correction")
+    seconds = dict.fromkeys(parts, 0.0)
+    originals = {name: getattr(module, name) for name in parts}
+
+    def clocked(name):
+        def call(*args, **kwargs):
+            start = time.process_time()
+            try:
+                return originals[name](*args, **kwargs)
+            finally:
+                seconds[name] += time.process_time() - start
+
+        return call
+
+    try:
+        for name in parts:
+            setattr(module, name, clocked(name))
+        start = time.process_time()
+        ds = module.calibrate(camp)
+        seconds = {"calibrate": time.process_time() - start, **seconds}
+    finally:
+        for name, function in originals.items():
+            setattr(module, name, function)
+    return seconds, ds
+
+
+def compare_versions(camp, old_path: Path, repeat: int) -> None:
+    """Print the CPU time of ``calibrate`` and its parts, this version against ``old_path``, and the differences."""
+    spec = importlib.util.spec_from_file_location("surffin_calibration_old", old_path)
+    old = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(old)
+    times = {"old": [], "new": []}
+    results = {}
+    for _ in range(repeat):
+        for label, module in (("old", old), ("new", surffin.method.calibration)):
+            seconds, results[label] = cpu_parts(module, camp)
+            times[label].append(seconds)
+    median = {label: {key: np.median([run[key] for run in runs]) for key in runs[0]} for label, runs in times.items()}
+    print(f"\ncampaign {camp.path}: {len(camp.calibration.wall)} wall views, CPU s, medians of {repeat} runs\n")
+    row("part", "old s", "new s", "old / new")
+    for name, before in median["old"].items():
+        after = median["new"][name]
+        row(name, f"{before:.2f}", f"{after:.2f}", f"{before / after:.2f}x")
+    before, after = results["old"], results["new"]
+    fitted = before.status.values == 0
+    print()
+    row("status codes equal", "", "", str(bool(np.array_equal(before.status.values, after.status.values))))
+    print("max relative difference, new against old:")
+    for name, a, b in (
+        ("coef (converged pixels)", before.coef.values[:, fitted], after.coef.values[:, fitted]),
+        ("r2", before.r2.values, after.r2.values),
+        ("correction", before.correction.values, after.correction.values),
+        ("noise_variance", before.noise_variance.values, after.noise_variance.values),
+        ("scale_k", before.attrs["scale_k"], after.attrs["scale_k"]),
+    ):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            relative = np.abs(np.asarray(b) / np.asarray(a) - 1.0)
+        row(f"  {name}", "", "", f"{np.nanmax(relative):.1e}")
+
+
 def row(label, *cells, width=14):
     """Print one table row: ``label``, then the cells right-aligned in columns of ``width``."""
     print(f"{label:<44}" + "".join(f"{cell:>{width}}" for cell in cells))
@@ -170,10 +244,14 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=100)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--sample", type=int, default=300, help="pixels fitted by scipy least_squares")
+    parser.add_argument("--against", type=Path, default=None, help="an earlier calibration.py to time against")
     args = parser.parse_args()
 
     directory = campaign_dir(args.campaign)
     camp = surffin.read_campaign(directory)
+    if args.against is not None:
+        compare_versions(camp, args.against, args.repeat)
+        return
     truth = xr.open_zarr(directory.with_name(directory.name + "-truth") / "instrument.zarr").compute()
     height, width = camp.camera.height, camp.camera.width
     paths = [path for path in camp.calibration.wall if path.stem != HELD_OUT][: args.views]

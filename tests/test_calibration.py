@@ -283,6 +283,29 @@ def test_degenerate_pixels_are_nan_with_their_status():
     assert counts == {"converged": 7, "too_few_observations": 2, "singular_statistics": 3, "not_converged": 0}
 
 
+def test_fit_leaves_its_inputs_unchanged_and_repeats_bit_for_bit():
+    # more pixels than one block of the batched fit (the last one partial), with pixels without a fit in both
+    rng = np.random.default_rng(8)
+    shape = (131, 127)
+    coef = realistic_coefficients(rng, shape)
+    intensity, distance, aoi = wall_observations(rng, coef, 14, 0.02, shape)
+    valid = rng.random(intensity.shape) > 0.05
+    distance[:, 0, :40], valid[:, 0, :40] = 0.6, True  # singular statistics
+    valid[:, -1, -40:] = False  # too few observations
+    stats = accumulate(intensity, distance, aoi, valid)
+    start = fit_calibration(stats).coef.values
+    moments, previous = stats.moments.copy(), start.copy()
+    fits = [fit_calibration(stats, start=start) for _ in range(2)]
+    np.testing.assert_array_equal(stats.moments, moments)
+    np.testing.assert_array_equal(start, previous)
+    for name in ("coef", "r2", "status"):
+        np.testing.assert_array_equal(fits[0][name], fits[1][name])
+    status = fits[0].status.values
+    assert (status[0, :40] == STATUS["singular_statistics"]).all()
+    assert (status[-1, -40:] == STATUS["too_few_observations"]).all()
+    assert np.mean(status == STATUS["converged"]) > 0.95
+
+
 def test_fit_output_layout():
     fit = fit_calibration(WallStatistics((2, 3)))
     assert fit.coef.dims == ("term", "y", "x") and fit.coef.dtype == np.float64

@@ -319,11 +319,24 @@ def _system(moments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return moments[_G_INDEX], moments[_B_INDEX]
 
 
+def _pixel_dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Dot products ``sum_i u[i] v[i]`` (n,) of u, v (k, n), summed as einsum sums pixel-major arrays.
+
+    einsum adds the terms along a contiguous axis with SIMD partial sums, along any other axis one
+    after the other: the last bits depend on the memory layout. The fit's per-pixel dot products
+    (signal energy, rank-one start, convergence test) are summed pixel-major (contiguous along i),
+    as when the fit was validated, while its element-wise work runs on row-major arrays, where it
+    is several times faster; the Gauss-Newton path of an ill-conditioned pixel follows the last bits.
+    """
+    return np.einsum("in,in->n", np.asfortranarray(u), np.asfortranarray(v))
+
+
 def _solve_spd(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Solve symmetric positive definite systems a x = b, batched over the last axis, never raising.
 
     Gaussian elimination without pivoting (stable for SPD matrices) on the
-    Jacobi-scaled matrix, vectorised over pixels.
+    Jacobi-scaled matrix, vectorised over pixels; the scaled copy of a is
+    eliminated in place, the outer products go to one scratch array.
 
     Parameters
     ----------
@@ -341,17 +354,21 @@ def _solve_spd(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     k = len(b)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         scale = 1.0 / np.sqrt(np.einsum("iin->in", a))
-        a = a * scale[:, None] * scale[None, :]
+        a = a * scale[:, None]
+        a *= scale
         x = b * scale
         pivots = np.empty_like(x)
+        outer = np.empty_like(a)
         for row in range(k):
+            rest = slice(row + 1, None)
             pivots[row] = a[row, row]
-            factor = a[row + 1 :, row] / a[row, row]
-            a[row + 1 :, row + 1 :] -= factor[:, None] * a[None, row, row + 1 :]
-            x[row + 1 :] -= factor * x[row]
+            factor = a[rest, row] / a[row, row]
+            a[rest, rest] -= np.multiply(factor[:, None], a[None, row, rest], out=outer[rest, rest])
+            x[rest] -= np.multiply(factor, x[row], out=outer[row, rest])
         for row in range(k - 1, -1, -1):
             x[row] = (x[row] - np.einsum("in,in->n", a[row, row + 1 :], x[row + 1 :])) / a[row, row]
-    return x * scale, np.where(np.isnan(pivots).any(axis=0), -np.inf, pivots.min(axis=0))
+        x *= scale
+    return x, np.where(np.isnan(pivots).any(axis=0), -np.inf, pivots.min(axis=0))
 
 
 def _rank_one_shape(m_hat: np.ndarray) -> np.ndarray:
@@ -361,7 +378,7 @@ def _rank_one_shape(m_hat: np.ndarray) -> np.ndarray:
     ``M M^T`` (closed form); ``v = M^T u`` is then the leading right one up to scale.
     """
     M = m_hat.reshape(2, 3, -1)
-    p00, p01, p11 = (np.einsum("kn,kn->n", M[i], M[j]) for i, j in ((0, 0), (0, 1), (1, 1)))
+    p00, p01, p11 = (_pixel_dot(M[i], M[j]) for i, j in ((0, 0), (0, 1), (1, 1)))
     half = 0.5 * (p00 - p11)
     top = 0.5 * (p00 + p11) + np.sqrt(half * half + p01 * p01)
     first = np.stack([top - p11, p01])
@@ -410,16 +427,22 @@ def _start(m_hat: np.ndarray, G: np.ndarray, b: np.ndarray, shapes: Iterable[np.
 def _products(p: np.ndarray) -> np.ndarray:
     """m(p) = vec([A, B]^T [C, D, 1]) (6, n) of p = (A, B, C, D) (4, n)."""
     A, B, C, D = p
-    return np.stack([A * C, A * D, A, B * C, B * D, B])
+    m = np.empty((6, p.shape[1]))
+    np.multiply(A, p[2:], out=m[:2])
+    np.multiply(B, p[2:], out=m[3:5])
+    m[2::3] = p[:2]
+    return m
 
 
-def _contract_v(x: np.ndarray, C, D) -> np.ndarray:
+def _contract_v(x: np.ndarray, C, D, out: np.ndarray | None = None) -> np.ndarray:
     """``(dm/dA, dm/dB)^T x``: ``sum_k x[(i, k)] v_k`` with v = (C, D, 1), along the first axis of x (6, ...).
 
-    Returns (2, ...).
+    Returns (2, ...), in ``out`` if given; x may be a strided view (it is not copied).
     """
-    x = x.reshape(2, 3, *x.shape[1:])
-    return x[:, 0] * C + x[:, 1] * D + x[:, 2]
+    out = np.multiply(x[0::3], C, out=out)
+    out += x[1::3] * D
+    out += x[2::3]
+    return out
 
 
 def _jt(x: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -429,14 +452,32 @@ def _jt(x: np.ndarray, p: np.ndarray) -> np.ndarray:
     dm/dC = [A, 0, 0, B, 0, 0], dm/dD = [0, A, 0, 0, B, 0].
     """
     A, B, C, D = p
-    return np.concatenate([_contract_v(x, C, D), A * x[:2] + B * x[3:5]])
+    out = np.empty_like(x, shape=(4, *x.shape[1:]))
+    _contract_v(x, C, D, out=out[:2])
+    np.multiply(A, x[:2], out=out[2:])
+    out[2:] += B * x[3:5]
+    return out
 
 
 def _cost(p: np.ndarray, m_hat: np.ndarray, G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Q(p) (n,) and G (m(p) - m_hat) (6, n)."""
-    d = _products(p) - m_hat
+    d = _products(p)
+    d -= m_hat
     Gd = np.einsum("kln,ln->kn", G, d)
     return np.einsum("kn,kn->n", d, Gd), Gd
+
+
+def _take(array: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """``array[..., index]`` for increasing indices (n,) into the last axis; ``array`` itself if they are all of it."""
+    return array if index.size == array.shape[-1] else array.take(index, axis=-1)
+
+
+def _put(array: np.ndarray, index: np.ndarray, ok: np.ndarray, values: np.ndarray) -> None:
+    """``array[..., index[ok]] = values[..., ok]`` for increasing indices (n,) and a mask ok (n,), in place."""
+    if index.size == array.shape[-1]:
+        np.copyto(array, values, where=ok)
+    else:
+        array[..., index[ok]] = values[..., ok]
 
 
 def _gauss_newton(p, m_hat, G, floor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -451,7 +492,7 @@ def _gauss_newton(p, m_hat, G, floor) -> tuple[np.ndarray, np.ndarray, np.ndarra
     cost, Gd = _cost(p, m_hat, G)
     converged = np.zeros(p.shape[1], dtype=bool)
     index = np.flatnonzero(np.isfinite(cost))
-    work = p[:, index], m_hat[:, index], G[..., index], floor[index], cost[index], Gd[:, index]
+    work = tuple(_take(array, index) for array in (p, m_hat, G, floor, cost, Gd))
     live = np.ones(index.size, dtype=bool)
     for _ in range(_MAX_ITER):
         if not live.any():
@@ -459,24 +500,25 @@ def _gauss_newton(p, m_hat, G, floor) -> tuple[np.ndarray, np.ndarray, np.ndarra
         if live.sum() < live.size // 2:
             p[:, index] = work[0]
             cost[index] = work[4]
-            index, work, live = index[live], tuple(array[..., live] for array in work), live[live]
+            index, work, live = index[live], tuple(array.compress(live, axis=-1) for array in work), live[live]
         pw, mw, Gw, fw, cw, Gdw = work
         H = _jt(np.moveaxis(_jt(Gw, pw), 0, 1), pw)
         g = _jt(Gdw, pw)
         step, pivot = _solve_spd(H, -g)
         bad = ~live | ~((pivot > 0) & np.isfinite(step).all(axis=0))
-        done = ~bad & (0.5 * np.einsum("in,in->n", step, -g) <= _FTOL * cw + fw)
+        done = ~bad & (0.5 * _pixel_dot(step, -g) <= _FTOL * cw + fw)
         accepted = np.zeros(live.size, dtype=bool)
         factor = 1.0
         for _ in range(_MAX_HALVINGS):
             todo = np.flatnonzero(~accepted & ~bad & (~done | (factor == 1.0)))
             if todo.size == 0:
                 break
-            trial = pw[:, todo] + factor * step[:, todo]
-            c, gd = _cost(trial, mw[:, todo], Gw[..., todo])
-            ok = c <= cw[todo] * (1.0 + _COST_RISE) + fw[todo]
+            trial = _take(pw, todo) + factor * _take(step, todo)
+            c, gd = _cost(trial, _take(mw, todo), _take(Gw, todo))
+            ok = c <= _take(cw, todo) * (1.0 + _COST_RISE) + _take(fw, todo)
             chosen = todo[ok]
-            pw[:, chosen], cw[chosen], Gdw[:, chosen] = trial[:, ok], c[ok], gd[:, ok]
+            for array, values in ((pw, trial), (cw, c), (Gdw, gd)):
+                _put(array, todo, ok, values)
             accepted[chosen] = True
             factor *= 0.5
         converged[index[done]] = True
@@ -486,9 +528,38 @@ def _gauss_newton(p, m_hat, G, floor) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return p, cost, converged
 
 
+def _free_fit(moments: np.ndarray, min_obs: int) -> tuple[np.ndarray, np.ndarray]:
+    """Step 1 of :func:`fit_calibration` for n pixels: which of them get a fit, and their unconstrained products.
+
+    Parameters
+    ----------
+    moments : (22, n) ndarray of float64
+        :attr:`WallStatistics.moments` of n pixels.
+    min_obs : int
+
+    Returns
+    -------
+    status : (n,) ndarray of int8
+        :data:`CALIBRATION_STATUS` codes 1 and 2 of the pixels without a fit, 3 (to be fitted) elsewhere.
+    m_hat : (6, n) ndarray of float64
+        ``G^-1 b`` of the pixels of status 3, NaN elsewhere.
+    """
+    n = moments.shape[1]
+    status = np.full(n, 3, dtype=np.int8)
+    m_hat = np.full((6, n), np.nan)
+    enough = moments[0] >= min_obs
+    status[~enough] = 1
+    index = np.flatnonzero(enough)
+    solution, pivot = _solve_spd(*_system(_take(moments, index)))
+    regular = pivot > _MIN_PIVOT
+    status[index[~regular]] = 2
+    m_hat[:, index[regular]] = solution[:, regular]
+    return status, m_hat
+
+
 def _fit_block(
     moments: np.ndarray,
-    min_obs: int,
+    free: tuple[np.ndarray, np.ndarray],
     shapes: tuple[np.ndarray, ...] = (),
     angular: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -498,7 +569,8 @@ def _fit_block(
     ----------
     moments : (22, n) ndarray of float64
         :attr:`WallStatistics.moments` of n pixels.
-    min_obs : int
+    free : ((n,) ndarray of int8, (6, n) ndarray of float64)
+        Their status and unconstrained products (:func:`_free_fit`).
     shapes : tuple of ndarray, optional
         Further start candidates (:func:`_start`): (C, D) (2,) for every pixel
         (the sensor's typical) or (2, n) per pixel (a previous fit; NaN: none).
@@ -515,19 +587,15 @@ def _fit_block(
     status : (n,) ndarray of int8
         :data:`CALIBRATION_STATUS` codes.
     """
+    status, m_hat = free
     n = moments.shape[1]
     coef = np.full((5, n), np.nan)
     r2 = np.full(n, np.nan)
-    status = np.full(n, 3, dtype=np.int8)
-    enough = moments[0] >= min_obs
-    status[~enough] = 1
-    index = np.flatnonzero(enough)
-    G, b = _system(moments[:, index])
-    m_hat, pivot = _solve_spd(G, b)
-    regular = pivot > _MIN_PIVOT
-    status[index[~regular]] = 2
-    index, G, b, m_hat = index[regular], G[..., regular], b[:, regular], m_hat[:, regular]
-    energy = np.einsum("kn,kn->n", m_hat, b)
+    index = np.flatnonzero(status == 3)
+    status = status.copy()
+    G, b = _system(_take(moments, index))
+    m_hat = _take(m_hat, index)
+    energy = _pixel_dot(m_hat, b)
     if angular is None:
         candidates = [shape if shape.ndim == 1 else shape[:, index] for shape in shapes]
         p, cost, converged = _gauss_newton(_start(m_hat, G, b, candidates), m_hat, G, _FLOOR * np.abs(energy))
@@ -641,21 +709,20 @@ def fit_calibration(
     r2 = np.empty(flat.shape[1])
     status = np.empty(flat.shape[1], dtype=np.int8)
     pooled = np.sum(flat, axis=1, where=flat[0] >= min_obs, keepdims=True)
-    typical = _fit_block(pooled, int(min_obs))[0][2:4, 0]
+    typical = _fit_block(pooled, _free_fit(pooled, int(min_obs)))[0][2:4, 0]
     shapes = [typical] if np.isfinite(typical).all() else []
     previous = None if start is None else np.asarray(start, dtype=np.float64).reshape(5, -1)[2:4]
-    for first in range(0, flat.shape[1], _BLOCK):
-        block = slice(first, first + _BLOCK)
+    blocks = [slice(first, first + _BLOCK) for first in range(0, flat.shape[1], _BLOCK)]
+    # step 1 of each block, kept for the refit of step 4
+    free = [_free_fit(flat[:, block], int(min_obs)) for block in blocks]
+    for block, solved in zip(blocks, free, strict=True):
         candidates = shapes if previous is None else [*shapes, previous[:, block]]
-        coef[:, block], r2[block], status[block] = _fit_block(flat[:, block], int(min_obs), tuple(candidates))
+        coef[:, block], r2[block], status[block] = _fit_block(flat[:, block], solved, tuple(candidates))
     if angular_smoothing > 0:
         sigma = angular_smoothing * math.hypot(height, width)
         angular = _smooth_angular(coef.reshape(5, height, width), sigma).reshape(2, -1)
-        for start in range(0, flat.shape[1], _BLOCK):
-            block = slice(start, start + _BLOCK)
-            coef[:, block], r2[block], status[block] = _fit_block(
-                flat[:, block], int(min_obs), angular=angular[:, block]
-            )
+        for block, solved in zip(blocks, free, strict=True):
+            coef[:, block], r2[block], status[block] = _fit_block(flat[:, block], solved, angular=angular[:, block])
     image = ("y", "x")
     return xr.Dataset(
         {
