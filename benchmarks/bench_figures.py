@@ -7,9 +7,11 @@ specimens and the first scene's labels. Then each figure kind but ``roughness`` 
 specimens' roughness) is written by :func:`~surffin.report.figures.write_figures` from those stores
 (``features``: the first specimen, with its roi), the kinds taking turns so that the machine's load
 (it is shared) falls on all of them alike; one warm-up round is not counted. The reference is
-matplotlib alone saving an empty figure of the size of the feature figure as PNG. Prints per kind
+matplotlib alone saving an empty figure of 19 x 9.5 in as PNG. Prints per kind
 the median CPU seconds of the process (``time.process_time``) over the rounds and its ratio to the
-reference.
+reference. With ``--against REV`` (a git revision, e.g. ``HEAD``) each kind is also drawn, in the same
+rounds, by the ``report/figures.py`` and ``report/canvas.py`` of that revision (:func:`figures_at`), and
+the table gets their median and the speed-up (their median / this tree's).
 """
 
 from __future__ import annotations
@@ -17,9 +19,13 @@ from __future__ import annotations
 import argparse
 import io
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
+import types
 from pathlib import Path
+from unittest import mock
 
 from _paper import paper_campaign  # benchmarks/_paper.py: this folder is on sys.path when run as a script
 from bench_chunks import CONFIG, quiet_logs, run_chain
@@ -27,10 +33,10 @@ from bench_chunks import CONFIG, quiet_logs, run_chain
 from surffin.method.stages import labels_stage
 from surffin.pipeline import parameters
 from surffin.pipeline.run import run_calibration, run_stage, run_training
+from surffin.report import figures as current
 from surffin.report.canvas import DPI
-from surffin.report.figures import write_figures
 
-#: Size of the feature figure, inches: that of the reference.
+#: Size of the reference's empty figure, inches (the feature figure's until it was made smaller).
 REFERENCE_SIZE = (19.0, 9.5)
 
 
@@ -71,6 +77,28 @@ def make_stores(camp, folder: Path, specimen: str, scene: str) -> dict[str, Path
     }
 
 
+def figures_at(revision: str) -> types.ModuleType:
+    """Import ``surffin/report/figures.py`` of a git revision, drawing on that revision's ``canvas.py``.
+
+    The rest of surffin is this tree's. Both modules are read with ``git show`` and made under other
+    names; the old canvas stands in for :mod:`surffin.report.canvas` while the old figures import it.
+    """
+    root = Path(__file__).resolve().parents[1]
+
+    def module(name: str, path: str) -> types.ModuleType:
+        source = subprocess.run(
+            ["git", "show", f"{revision}:{path}"], cwd=root, check=True, capture_output=True, text=True
+        ).stdout
+        made = types.ModuleType(name)
+        made.__file__ = f"{revision}:{path}"
+        exec(compile(source, made.__file__, "exec"), made.__dict__)
+        return made
+
+    canvas = module(f"canvas@{revision}", "surffin/report/canvas.py")
+    with mock.patch.dict(sys.modules, {"surffin.report.canvas": canvas}):
+        return module(f"figures@{revision}", "surffin/report/figures.py")
+
+
 def reference() -> None:
     """Save an empty figure of :data:`REFERENCE_SIZE` as PNG, with matplotlib alone."""
     from matplotlib.figure import Figure
@@ -83,6 +111,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--campaign", type=Path, help="a rendered paper campaign")
     parser.add_argument("--repeat", type=int, default=7, help="counted rounds")
+    parser.add_argument("--against", metavar="REV", help="also draw with the figures of this git revision")
     args = parser.parse_args()
     quiet_logs()
     with paper_campaign(args.campaign) as (camp, _), tempfile.TemporaryDirectory() as tmp:
@@ -97,13 +126,15 @@ def main():
             "wall_reflectance": {"calibration": stores["calibration"]},
             "feature_space": {"training": stores["training"]},
         }
+        modules = {"": current, **({f"@{args.against}": figures_at(args.against)} if args.against else {})}
         kinds = {
             "reference": reference,
             **{
-                kind: lambda kind=kind, inputs=inputs: write_figures(
-                    {kind: out / f"{kind}.png"}, inputs, roi=camp.items[specimen].roi
+                kind + suffix: lambda kind=kind, inputs=inputs, module=module: module.write_figures(
+                    {kind: out / f"{kind}{suffix}.png"}, inputs, roi=camp.items[specimen].roi
                 )
                 for kind, inputs in figures.items()
+                for suffix, module in modules.items()
             },
         }
         times = {kind: [] for kind in kinds}
@@ -118,11 +149,18 @@ def main():
             f"CPU seconds, {args.repeat} rounds; reference: an empty {REFERENCE_SIZE[0]}x{REFERENCE_SIZE[1]} in "
             f"figure saved as PNG at {DPI} dpi"
         )
-        print(f"{'figure':18s}{'median s':>10s}{'ratio':>8s}")
-        base = statistics.median(times["reference"])
-        for kind, values in times.items():
-            median = statistics.median(values)
-            print(f"{kind:18s}{median:10.3f}{median / base:8.2f}")
+        medians = {kind: statistics.median(values) for kind, values in times.items()}
+        base = medians["reference"]
+        against = f"@{args.against}" if args.against else ""
+        print(
+            f"{'figure':18s}{'median s':>10s}{'ratio':>8s}"
+            + (f"{against + ' s':>14s}{'speed-up':>10s}" * bool(against))
+        )
+        for kind in ("reference", *figures):
+            row = f"{kind:18s}{medians[kind]:10.3f}{medians[kind] / base:8.2f}"
+            if against and kind in figures:
+                row += f"{medians[kind + against]:14.3f}{medians[kind + against] / medians[kind]:10.2f}"
+            print(row)
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ import io
 import json
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 import pandas as pd
 import pytest
@@ -29,7 +30,7 @@ from surffin.method.roughness import roughness_relation
 from surffin.pipeline.analyses import run_figures
 from surffin.pipeline.run import run_roughness_map
 from surffin.report import figures
-from surffin.report.canvas import DPI, figure, save
+from surffin.report.canvas import DPI, DRAWING, figure, save
 from surffin.report.figures import (
     FIGURE_KINDS,
     accuracy_table,
@@ -261,39 +262,47 @@ def test_feature_figures_are_drawn(tmp_path):
 
 def test_feature_figure_keeps_its_scales_roi_and_legend(tmp_path, monkeypatch):
     drawn = []
-    monkeypatch.setattr(figures, "save", lambda fig, path: drawn.append(fig) or Path(path))
+    monkeypatch.setattr(figures, "save", lambda fig, path, **options: drawn.append(fig) or Path(path))
     features, registered = item_stores()
     uncertain = features.assign(R0_uncertainty=0.01 * features["R0"], n_uncertainty=0.02 * features["n"])
     plot_features(uncertain, registered, tmp_path / "f.png", roi=ROI)
     (fig,) = drawn
     FigureCanvasAgg(fig).draw()
-    bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
     names = ["R0", "n", "variability", "R0_uncertainty", "n_uncertainty"]
-    assert sorted(bar.get_ylabel() for bar in bars) == sorted(f"{name} (1)" for name in names)
-    for bar in bars:  # each colour scale readable: at least two labelled values
+    panels = [ax for ax in fig.axes if ax.images]
+    assert [ax.images[0].get_array().shape for ax in panels] == [features["R0"].shape] * len(names)
+    assert all(any(isinstance(p, Rectangle) and p.get_linestyle() == "--" for p in ax.patches) for ax in panels)
+    titles = [ax.get_title() for ax in panels]
+    assert titles[0] == "R0: reflectance at normal incidence"  # linear: no claim of a log scale
+    assert titles[3] == "standard uncertainty of the smoothed R0 (log scale)"
+    bars = {ax.get_ylabel(): ax for ax in fig.axes if ax.get_ylabel().endswith(" (1)")}
+    assert sorted(bars) == sorted(f"{name} (1)" for name in names)
+    for name in names:  # each colour scale readable: at least two labelled values; the maps of spread logarithmic
+        bar = bars[f"{name} (1)"]
         assert len([label for label in bar.get_yticklabels() if label.get_text()]) >= 2
-    images = [ax for ax in fig.axes if ax.images and ax not in bars]
-    assert len(images) == 5
-    assert all(any(isinstance(patch, Rectangle) for patch in ax.patches) for ax in images)  # the roi
-    titles = {ax.get_title() for ax in images}
-    assert "standard uncertainty of the smoothed R0 (log scale)" in titles
-    assert "R0: reflectance at normal incidence" in titles  # linear: no claim of a log scale
+        assert bar.get_yscale() == ("linear" if name in ("R0", "n") else "log")
+    first, *others = panels  # sensor coordinates on the first panel only
+    assert (first.get_xlabel(), first.get_ylabel()) == ("sensor column x (px)", "sensor row y (px)")
+    assert len([label for label in first.get_xticklabels() if label.get_text()]) >= 2
+    assert all(len(ax.get_xticks()) == len(ax.get_yticks()) == 0 for ax in others)
     (legend,) = [ax.get_legend() for ax in fig.axes if ax.get_legend()]
     entries = [text.get_text() for text in legend.get_texts()]
     assert entries[:3] == ["view v00", "view v01", "view v02"] and entries[3].startswith("model at median R0 = ")
 
 
-def test_a_saved_png_has_matplotlibs_pixels_and_resolution(tmp_path):
+@pytest.mark.parametrize("dpi", [DPI, 100])
+def test_a_saved_png_has_matplotlibs_pixels_and_resolution(tmp_path, dpi):
     fig = figure(3.0, 2.0)
     ax = fig.add_subplot()
     ax.imshow(np.random.default_rng(0).random((5, 7)))
     ax.set_title("θ")
-    path = save(fig, tmp_path / "ours.png")
+    path = save(fig, tmp_path / "ours.png", dpi=dpi)
     theirs = io.BytesIO()
-    fig.savefig(theirs, format="png", dpi=DPI)
+    with matplotlib.rc_context(DRAWING):
+        fig.savefig(theirs, format="png", dpi=dpi)
     with Image.open(path) as image, Image.open(theirs) as reference:
         np.testing.assert_array_equal(np.asarray(image), np.asarray(reference))
-        assert image.info["dpi"] == pytest.approx((DPI, DPI), abs=0.05)  # as pixels per metre
+        assert image.info["dpi"] == pytest.approx((dpi, dpi), abs=0.05)  # as pixels per metre
 
 
 def test_label_map_shows_the_labels(tmp_path):

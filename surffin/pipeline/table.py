@@ -74,7 +74,7 @@ STAGES = {
         Stage("roughness_relation", roughness_relation, ("features",), "roughness/relation.json", 1),
         Stage("roughness", roughness_stage, ("features",), "roughness/{scene}.zarr", 2),
         Stage("export", export_results, ("features", "labels", "training", "summary"), "export", 1),
-        Stage("figures", write_figures, ("calibration", "training", "summary", "features", "labels"), "figures", 3),
+        Stage("figures", write_figures, ("calibration", "training", "summary", "features", "labels"), "figures", 4),
         Stage(
             "diagnostics",
             calibration_report,

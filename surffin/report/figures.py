@@ -90,6 +90,9 @@ _LABEL_ALPHA = 0.6
 _UNCLASSIFIED_COLOUR = (0.0, 0.0, 0.0, 0.8)
 # Percentiles of the colour range of feature images and of the intensity background.
 _RANGE = (2, 98)
+# Resolution of the feature figure, dots per inch: its images 400 px wide. At the canvas's 120 dpi (480 px, a
+# pixel of the paper's items each) it cost 15 % more, most of it compressing those pixels.
+_FEATURE_DPI = 100
 
 
 # --- helpers ----------------------------------------------------------------------------------
@@ -129,6 +132,20 @@ def _extent(da: xr.DataArray) -> tuple[float, float, float, float]:
     return x[0] - 0.5, x[-1] + 0.5, y[-1] + 0.5, y[0] - 0.5
 
 
+def _linear(values: np.ndarray, norm) -> tuple:
+    """Return values and a linear norm that colour them as ``values`` under ``norm``: under a LogNorm, log10.
+
+    The same pixels (drawn nearest, the data resampled before colouring) in half the time of matplotlib's
+    LogNorm. Values not positive become NaN: LogNorm masks them.
+    """
+    from matplotlib.colors import LogNorm, Normalize
+
+    if not isinstance(norm, LogNorm):
+        return values, norm
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(values > 0, np.log10(values), np.nan), Normalize(np.log10(norm.vmin), np.log10(norm.vmax))
+
+
 def _image(
     ax,
     da: xr.DataArray,
@@ -139,20 +156,25 @@ def _image(
     *,
     log_scale: bool = False,
     coordinates: bool = True,
+    cax=None,
 ):
     """Draw a (y, x) DataArray in sensor coordinates with a colour bar (logarithmic if asked and possible).
 
     The title notes a logarithmic scale. Without ``coordinates`` the axes have no ticks: with their labels
-    they cost about 1.5 ms each, the image about 4.
+    they cost about 1.5 ms each, the image about 4. The colour bar is drawn in ``cax`` if given, else in
+    room taken from ``ax``.
     """
+    from matplotlib.cm import ScalarMappable
     from matplotlib.colors import LogNorm, Normalize
 
     low, high = limits if limits is not None else _robust_range(da.values)
     log_scale = log_scale and low is not None and low > 0
-    shown = ax.imshow(
-        da.transpose("y", "x").values,
-        cmap=colormap(cmap),
-        norm=LogNorm(low, high) if log_scale else Normalize(low, high),
+    norm, cmap = LogNorm(low, high) if log_scale else Normalize(low, high), colormap(cmap)
+    values, linear = _linear(da.transpose("y", "x").values, norm)
+    ax.imshow(
+        values,
+        cmap=cmap,
+        norm=linear,
         extent=_extent(da),
         interpolation="nearest",
         interpolation_stage="data",  # the same pixels as colouring first, in less than half the time
@@ -165,26 +187,39 @@ def _image(
     else:
         ax.set_xticks([])
         ax.set_yticks([])
-    _colorbar(ax, shown, label)
+    _colorbar(ax, ScalarMappable(norm, cmap), label, cax)
 
 
-def _colorbar(ax, shown, label: str) -> None:
-    """Add the colour bar of an image, with a few plain tick labels (a log scale's default ones are many, mathtext)."""
+def _scale_ticks(norm):
+    """Return the locator and formatter of a colour scale: a few plain values (a log scale's are many, mathtext).
+
+    Within a decade plain steps; 1 and 3 of each of a few decades; every few decades of many. The formatter
+    is None for a linear scale: matplotlib's default.
+    """
     from matplotlib.colors import LogNorm
     from matplotlib.ticker import FormatStrFormatter, LogLocator, MaxNLocator
 
-    bar = ax.figure.colorbar(shown, ax=ax, label=label, shrink=0.9)
-    low, high = shown.norm.vmin, shown.norm.vmax
-    if not isinstance(shown.norm, LogNorm):
-        bar.set_ticks(MaxNLocator(5))
-        return
-    # Within a decade plain steps; 1 and 3 of each of a few decades; every few decades of many.
+    low, high = norm.vmin, norm.vmax
+    if not isinstance(norm, LogNorm):
+        return MaxNLocator(5), None
     if high <= 10 * low:
-        bar.set_ticks(MaxNLocator(4))
+        locator = MaxNLocator(4)
     else:
-        bar.set_ticks(LogLocator(subs=(1.0, 3.0)) if high <= 1000 * low else LogLocator(numticks=5))
-    bar.formatter = FormatStrFormatter("%.2g")
-    bar.minorticks_off()
+        locator = LogLocator(subs=(1.0, 3.0)) if high <= 1000 * low else LogLocator(numticks=5)
+    return locator, FormatStrFormatter("%.2g")
+
+
+def _colorbar(ax, shown, label: str, cax=None) -> None:
+    """Add matplotlib's colour bar of ``shown`` (a mappable) with the ticks of :func:`_scale_ticks`.
+
+    In ``cax`` if given, else in room taken from ``ax``.
+    """
+    bar = ax.figure.colorbar(shown, ax=ax, cax=cax, label=label, shrink=0.9)
+    locator, formatter = _scale_ticks(shown.norm)
+    bar.set_ticks(locator)
+    if formatter is not None:
+        bar.formatter = formatter
+        bar.minorticks_off()
 
 
 def _roi_box(ax, roi: Roi | None) -> None:
@@ -226,14 +261,16 @@ def _polar_quadrant(ax, r_max: float, title: str) -> None:
     ax.add_patch(disc)
     for artist in (*ax.lines, *ax.collections):
         artist.set_clip_path(disc)
-    radii = MaxNLocator(6, steps=[1, 2, 2.5, 5, 10]).tick_values(0.0, r_max)
+    radii = MaxNLocator(5, steps=[1, 2, 2.5, 5, 10]).tick_values(0.0, r_max)
     radii = radii[radii < r_max]
     arc = np.radians(np.linspace(0.0, 90.0, 91))
     angles = np.radians(np.arange(0, 91, 15))
     grid = [np.column_stack(_polar_xy(arc, radius)) for radius in radii[1:]]
     grid += [np.column_stack(_polar_xy(angle, np.array([0.0, r_max]))) for angle in angles[1:-1]]
     ax.add_collection(LineCollection(grid, colors="0.8", linewidths=0.8, zorder=0.5))
-    for angle in angles:
+    # Labels as texts, not ticks (a tick costs about 2 ms, a text 1): the angles every 30 deg, the radii up the
+    # 0 deg line.
+    for angle in angles[::2]:
         ax.annotate(
             f"{np.degrees(angle):.0f}°",
             _polar_xy(angle, r_max),
@@ -242,7 +279,11 @@ def _polar_quadrant(ax, r_max: float, title: str) -> None:
             ha="center",
             va="center",
         )
-    ax.set(xlim=(0.0, r_max), ylim=(0.0, r_max), aspect="equal", xticks=[], yticks=radii)
+    for radius in radii:
+        ax.annotate(
+            f"{radius:g}", (0.0, radius), xytext=(-4.0, 0.0), textcoords="offset points", ha="right", va="center"
+        )
+    ax.set(xlim=(0.0, r_max), ylim=(0.0, r_max), aspect="equal", xticks=[], yticks=[])
     ax.spines[:].set_visible(False)
     ax.set_xlabel("reflectance R (radius) at angle of incidence θ", labelpad=8)
     ax.set_title(title, y=1.0, pad=24)  # above the label of 0 deg
@@ -528,12 +569,12 @@ def plot_features(
     -------
     Path
     """
+    from matplotlib.lines import Line2D
+
     uncertainties = [f"{name}_uncertainty" for name in UNCERTAINTY]
     features = features[[*FEATURES, *(name for name in uncertainties if name in features)]].load()
     region = features if roi is None else select_roi(features, roi)
-    # A fixed layout: the constrained one took 0.7 of this figure's ~2 s, and the figure is drawn for every item.
-    fig = figure(19.0, 9.5, layout=None)
-    grid = fig.add_gridspec(2, 3, left=0.04, right=0.97, top=0.91, bottom=0.15, wspace=0.25, hspace=0.3)
+    fig, boxes, polar = _feature_layout(features.sizes["y"] / features.sizes["x"])
     panels = (
         ("R0", "R0: reflectance at normal incidence", "viridis", _RANGE, False),
         ("n", "n: scattering coefficient", "cividis", _RANGE, False),
@@ -543,47 +584,59 @@ def plot_features(
             for name in uncertainties
         ),
     )
-    for index, (name, title, cmap, percentiles, log_scale) in enumerate(panels):
-        ax = fig.add_subplot(grid[divmod(index, 3)])
+    for index, ((name, title, cmap, percentiles, log_scale), (image, bar)) in enumerate(zip(panels, boxes)):
         if name not in features:
-            ax.axis("off")
-            ax.text(
-                0.5,
-                0.5,
+            left, bottom, width, height = image
+            fig.text(
+                left + width / 2,
+                bottom + height / 2,
                 f"no {name} in this features store:\nrecompute it with this surffin",
                 ha="center",
                 va="center",
                 fontsize=11,
             )
             continue
-        limits = _robust_range(region[name].values, percentiles)
-        # Sensor coordinates on the first panel only: the panels share its grid.
-        _image(ax, features[name], title, f"{name} (1)", cmap, limits, log_scale=log_scale, coordinates=not index)
+        ax = fig.add_axes(image)
+        _image(
+            ax,
+            features[name],
+            title,
+            f"{name} (1)",
+            cmap,
+            _robust_range(region[name].values, percentiles),
+            log_scale=log_scale,
+            coordinates=not index,  # on the first panel only: the panels share its grid
+            cax=fig.add_axes(bar),
+        )
         _roi_box(ax, roi)
-    polar = fig.add_subplot(grid[1, 2])
     both = registered[["reflectance", "aoi"]]
     both = (both if roi is None else select_roi(both, roi)).load()
-    r_max = 0.0
+    r_max, handles = 0.0, []
     for index, view in enumerate(both["view"].values):
         aoi = both["aoi"].sel(view=view).values.ravel()
         reflectance = both["reflectance"].sel(view=view).values.ravel()
         ok = np.flatnonzero(np.isfinite(aoi) & np.isfinite(reflectance))
         chosen = ok[subsample(ok.size, _MAX_POINTS // both.sizes["view"], seed=index)]
-        polar.plot(*_polar_xy(aoi[chosen], reflectance[chosen]), "o", ms=3, mew=0, alpha=0.3, label=f"view {view}")
+        (line,) = polar.plot(*_polar_xy(aoi[chosen], reflectance[chosen]), "o", ms=3, mew=0, alpha=0.3)
+        # A marker of its own in the legend: its copies of the plotted lines (their markers deep-copied) cost
+        # about 1 ms an entry.
+        handles.append(
+            Line2D([], [], ls="", marker="o", ms=7, mew=0, alpha=0.3, color=line.get_color(), label=f"view {view}")
+        )
         if chosen.size:
             r_max = max(r_max, float(np.percentile(reflectance[chosen], 99.5)))
     r0, n = (float(np.nanmedian(region[name].values)) for name in ("R0", "n"))
     if np.isfinite(r0) and np.isfinite(n):
         theta = np.radians(np.linspace(0.0, 90.0, 181))
-        polar.plot(
+        handles += polar.plot(
             *_polar_xy(theta, scattering_model(theta, r0, n)),
             color="black",
             linewidth=2,
-            label=f"model at median R0 = {r0:.3f}, n = {n:.3f}",
+            label=f"model at median R0 = {r0:.3f},\nn = {n:.3f}",
         )
         r_max = max(r_max, r0)
     _polar_quadrant(polar, 1.1 * r_max if r_max > 0 else 1.0, "registered reflectance vs angle of incidence θ (deg)")
-    polar.legend(loc="lower left", bbox_to_anchor=(-0.1, -0.32), fontsize=8, markerscale=2.3, ncol=2)
+    polar.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.1, 1.0), fontsize=8)
     attrs = features.attrs
     what = f"specimen of class {attrs['class']}" if attrs.get("kind") == "specimen" else attrs.get("kind", "item")
     title = f"{attrs.get('item', '')} ({what}): features, smoothed {attrs.get('smoothing_size', '?')} px"
@@ -592,7 +645,32 @@ def plot_features(
             f"; uncertainties for {attrs['uncertainty_effective_pixels']:.1f} effectively independent px per window"
         )
     fig.suptitle(title)
-    return save(fig, path)
+    return save(fig, path, dpi=_FEATURE_DPI)
+
+
+def _feature_layout(aspect: float) -> tuple:
+    """Create the feature figure for images of ``aspect`` (rows / columns), its panels' boxes and its polar axes.
+
+    A fixed layout (the constrained one took 0.7 of this figure's ~2 s, and the figure is drawn for every
+    item), its axes made by ``add_axes``: two rows of three columns 5.15 in apart, each an image of at most
+    4 x 2.7 in with its colour bar right of it; the last a square, the polar plot, right of the radii's
+    labels, its legend right of it. Returns the figure, the (image, colour bar) boxes of the five images
+    (left, bottom, width, height in figure fractions, row by row) and the polar plot's Axes.
+    """
+    pitch, left, bottom, gap = 5.15, 0.8, 0.5, 0.85  # inches: columns apart, margins, between the rows
+    width = min(4.0, 2.7 / aspect)
+    height = width * aspect
+    side = min(width, height)
+    size = (left + 3 * pitch + 0.6, bottom + 2 * height + gap + 0.8)
+    corners = [(left + column * pitch, bottom + height + gap) for column in range(3)]
+    corners += [(left + column * pitch, bottom) for column in range(2)]
+
+    def box(x, y, w, h):
+        return x / size[0], y / size[1], w / size[0], h / size[1]
+
+    boxes = [(box(x, y, width, height), box(x + width + 0.1, y, 0.14, height)) for x, y in corners]
+    fig = figure(*size, layout=None)
+    return fig, boxes, fig.add_axes(box(left + 2 * pitch + 0.45, bottom, side, side))
 
 
 def plot_feature_space(training: xr.Dataset, path: str | os.PathLike) -> Path:
