@@ -28,7 +28,8 @@ The camera: pinhole, fx 565, fy 579, principal point at the centre; 0.9 mm Gauss
 With ``--against``, only one table: per frame (the scene, its central 320x480 crop, a plain wall at 30 deg) and
 support, the median time per frame of the other version's ``frame_angle_of_incidence`` and of this one's, run in
 turn in the same process, and the ratio of the medians (wall clock, and CPU time: the machine is shared), and the
-largest |aoi difference| (deg) and whether the two leave the same pixels without an AOI.
+largest |aoi difference| (deg) and whether the two leave the same pixels without an AOI; then, per frame, the same
+for ``mixed_pixels`` (window ``mixed``; the last column: whether the two flag the same pixels).
 """
 
 from __future__ import annotations
@@ -125,13 +126,24 @@ def label(window: int, largest: int) -> str:
     return f"{window:>7d}" if largest == window else f"{window:>3d}-{largest:<3d}"
 
 
+def median_seconds(kernels, repeat: int) -> np.ndarray:
+    """Median wall and CPU seconds (2, 2) of two callables run in turn ``repeat`` times for each timer."""
+    timers = (time.perf_counter, time.process_time)
+    # seconds[timer][kernel]: the runs of each kernel, alternating
+    seconds = [[[], []] for _ in timers]
+    for timer, runs in zip(timers, seconds):
+        for _ in range(repeat):
+            for kernel, kept in zip(kernels, runs):
+                kept += timeit.repeat(kernel, timer, number=1, repeat=1)
+    return np.median(seconds, axis=-1)
+
+
 def compare(path: Path, repeat: int) -> None:
     """Print the table of this kernel against the ``frame_angle_of_incidence`` of another geometry module file."""
     spec = importlib.util.spec_from_file_location("reference_geometry", path)
     reference = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(reference)
     kernels = (reference.frame_angle_of_incidence, frame_angle_of_incidence)
-    timers = (time.perf_counter, time.process_time)
     xyz = scene()[0]
     frames = {
         "scene 480x640": xyz,
@@ -140,29 +152,24 @@ def compare(path: Path, repeat: int) -> None:
     }
     print(f"this kernel against {path}: median of {repeat} runs each, in turn")
     print(" | ".join(("frame", "window", "ref ms", "ms", "speed-up", "cpu speed-up", "max |d aoi| deg", "same NaN")))
+
+    def row(name, support, seconds, difference, same):
+        (old_wall, new_wall), (old_cpu, new_cpu) = seconds
+        cells = (f"{name:13s}", f"{support:>7s}", f"{old_wall * 1e3:6.1f}", f"{new_wall * 1e3:5.1f}")
+        cells += (f"{old_wall / new_wall:8.2f}", f"{old_cpu / new_cpu:12.2f}", f"{difference:>15s}", f"{same!s:>8}")
+        print(" | ".join(cells))
+
     for name, frame in frames.items():
         for window, largest in ((15, 120), (21, 120), (15, 15)):
-            # seconds[timer][kernel]: the runs of each kernel, alternating
-            seconds = [[[], []] for _ in timers]
-            for timer, runs in zip(timers, seconds):
-                for _ in range(repeat):
-                    for kernel, kept in zip(kernels, runs):
-                        kept += timeit.repeat(
-                            lambda: kernel(frame, window, max_window=largest), timer, number=1, repeat=1
-                        )
-            (old_wall, new_wall), (old_cpu, new_cpu) = np.median(seconds, axis=-1)
-            old, new = (kernel(frame, window, max_window=largest)[0] for kernel in kernels)
-            row = (
-                f"{name:13s}",
-                label(window, largest),
-                f"{old_wall * 1e3:6.1f}",
-                f"{new_wall * 1e3:5.1f}",
-                f"{old_wall / new_wall:8.2f}",
-                f"{old_cpu / new_cpu:12.2f}",
-                f"{np.nanmax(np.abs(np.rad2deg(old - new)), initial=0.0):15.1e}",
-                f"{np.array_equal(np.isnan(old), np.isnan(new))!s:>8}",
-            )
-            print(" | ".join(row))
+            runs = [lambda kernel=kernel: kernel(frame, window, max_window=largest) for kernel in kernels]
+            old, new = (run()[0] for run in runs)
+            difference = f"{np.nanmax(np.abs(np.rad2deg(old - new)), initial=0.0):.1e}"
+            same = np.array_equal(np.isnan(old), np.isnan(new))
+            row(name, label(window, largest), median_seconds(runs, repeat), difference, same)
+    for name, frame in frames.items():
+        cloud = xr.DataArray(frame[None], dims=("view", "y", "x", "axis"))
+        runs = [lambda kernel=kernel: kernel(cloud).values for kernel in (reference.mixed_pixels, mixed_pixels)]
+        row(name, "mixed", median_seconds(runs, repeat), "-", np.array_equal(*(run() for run in runs)))
 
 
 def main() -> None:

@@ -811,3 +811,22 @@ def test_paper_preset_has_almost_no_mixed_pixels(tmp_path):
         flagged.extend(mixed_pixels(ingest_item(campaign, name)["xyz"]).sum(("y", "x")).values.tolist())
     assert len(flagged) == 25
     assert sum(flagged) <= 20 and max(flagged) <= 5  # measured 1 of 3.8 million (a noisy pixel at a step)
+
+
+@pytest.mark.parametrize("shape", [(1, 7), (2, 2), (3, 9), (6, 5), (9, 4)])
+def test_edges_and_mixed_pixels_are_the_same_on_the_transposed_frame(shape):
+    """Rows and columns play the same part: the edge test (the AOI's NaN) and the mixed pixels of a frame and of
+    its transpose (x and y swapped) agree, on frames of every aspect, however thin."""
+    rng = np.random.default_rng(sum(shape))
+    found = 0
+    for _ in range(40):
+        depth = 0.5 + 0.02 * rng.integers(0, 3, shape)
+        xyz = rays(*shape) * (depth / rays(*shape)[..., 2])[..., None]
+        xyz[rng.random(shape) < 0.1] = np.nan
+        swapped = np.ascontiguousarray(xyz.transpose(1, 0, 2)[..., [1, 0, 2]])
+        flagged = mixed(xyz)
+        np.testing.assert_array_equal(mixed(swapped), flagged.T)
+        aoi, _ = frame_angle_of_incidence(xyz, 3)
+        np.testing.assert_array_equal(np.isnan(frame_angle_of_incidence(swapped, 3)[0]), np.isnan(aoi).T)
+        found += flagged.sum()
+    assert found > 0 or min(shape) < 3

@@ -101,78 +101,98 @@ def _check_jump(jump) -> float:
     return float(jump)
 
 
-def _aligned(shape: tuple[int, int], offsets) -> list[tuple[slice, slice]]:
-    """Slices such that ``a[s_k]`` is, for every k, the pixel at ``offsets[k]`` from a common base pixel."""
-    bounds = []
-    for size, shifts in zip(shape, zip(*offsets)):
-        low = max(0, -min(shifts))
-        bounds.append((low, max(low, size - max(0, max(shifts)))))
-    return [tuple(slice(low + shift, high + shift) for (low, high), shift in zip(bounds, offset)) for offset in offsets]
-
-
-def _log_depth(points: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Log-depth (H, W), NaN at invalid pixels, and ray coordinates x/z, y/z (2, H, W) of one frame, float32."""
-    log_z = np.full(valid.shape, np.nan, dtype=np.float32)
-    np.log(points[2], out=log_z, where=valid)
-    rays = np.zeros((2, *valid.shape), dtype=np.float32)
+def _log_depth(points: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Log-depth, NaN at invalid pixels, and ray coordinates x/z, y/z, zero there, (3, H * W) of one frame, float32."""
+    terms = np.zeros((3, valid.size), dtype=np.float32)
+    terms[0] = np.nan
+    z = points[2].reshape(-1)
+    np.log(z, out=terms[0], where=valid.reshape(-1))
     for k in range(2):
-        np.divide(points[k], points[2], out=rays[k], where=valid)
-    return log_z, rays
+        np.divide(points[k].reshape(-1), z, out=terms[k + 1], where=valid.reshape(-1))
+    return terms
 
 
-def _rise(log_z: np.ndarray, rays: np.ndarray, first, second) -> tuple[np.ndarray, np.ndarray]:
-    """Log-depth rise from the pixels ``first`` to ``second`` (slices), and that of a surface at MAX_SLOPE_DEG."""
-    across = rays[0][second] - rays[0][first]
-    along = rays[1][second] - rays[1][first]
-    spacing = across * across
-    spacing += along * along
+def _rise(terms: np.ndarray, offset: int, scratch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Log-depth rise from each pixel p to p + ``offset`` (flat indices), and that of a surface at MAX_SLOPE_DEG.
+
+    ``terms`` is :func:`_log_depth`'s; both results (of the pixels p < H * W - offset) are views of ``scratch`` (an
+    array like it), overwritten. Pairs that wrap around a row are not neighbours: :func:`_unwrapped` drops them.
+    """
+    size = terms.shape[1] - offset
+    difference = np.subtract(terms[:, offset:], terms[:, :size], out=scratch[:, :size])
+    rise, spacing, along = difference
+    np.square(difference[1:], out=difference[1:])
+    spacing += along
     np.sqrt(spacing, out=spacing)
     spacing *= np.float32(_MAX_SLOPE)
-    return log_z[second] - log_z[first], spacing
+    return rise, spacing
+
+
+def _unwrapped(steps: np.ndarray, shape: tuple[int, int], dx: int, reach: int) -> np.ndarray:
+    """Clear the steps that wrap around a row in flat masks of steps, in place, and return the masks.
+
+    ``steps`` (..., H * W) bool holds a step from each pixel ``reach`` pixels along a direction of column step
+    ``dx``; those leaving the frame's columns land on another row.
+    """
+    columns = slice(shape[1] - reach, None) if dx > 0 else slice(0, reach)
+    if dx:
+        steps.reshape(*steps.shape[:-1], *shape)[..., columns] = False
+    return steps
 
 
 def _jump_edges(points: np.ndarray, valid: np.ndarray, jump: float) -> np.ndarray:
     """Edge mask (H, W) bool of the depth discontinuities of one frame (module docstring)."""
-    log_z, rays = _log_depth(points, valid)
-    edge = np.zeros(valid.shape, dtype=bool)
-
-    def step(first, second) -> np.ndarray:
-        rise, steepest = _rise(log_z, rays, first, second)
-        np.abs(rise, out=rise)
-        rise -= np.float32(jump)
-        return rise > steepest
-
+    terms = _log_depth(points, valid)
+    scratch = np.empty_like(terms)
+    edge = np.zeros(valid.size, dtype=bool)
+    step = np.empty(valid.size, dtype=bool)  # a jump from each pixel p to p + offset
     for dy, dx in _DIRECTIONS:
-        first, second = _aligned(valid.shape, ((0, 0), (dy, dx)))
-        adjacent = step(first, second)
-        edge[first] |= adjacent
-        edge[second] |= adjacent
-        first, middle, last = _aligned(valid.shape, ((0, 0), (dy, dx), (2 * dy, 2 * dx)))
-        edge[middle] |= step(first, last)
-    return edge
+        for reach in (1, 2):
+            offset = reach * (dy * valid.shape[1] + dx)
+            size = valid.size - offset
+            if size <= 0:
+                continue
+            rise, steepest = _rise(terms, offset, scratch)
+            np.abs(rise, out=rise)
+            rise -= np.float32(jump)
+            np.greater(rise, steepest, out=step[:size])
+            jumps = _unwrapped(step, valid.shape, dx, reach)[:size]
+            if reach == 1:
+                edge[:size] |= jumps
+                edge[offset:] |= jumps
+            else:
+                edge[offset // 2 : offset // 2 + size] |= jumps
+    return edge.reshape(valid.shape)
 
 
 def _mixed(points: np.ndarray, valid: np.ndarray, jump: float) -> np.ndarray:
     """Mixed-pixel mask (H, W) bool of one frame (:func:`mixed_pixels`)."""
-    log_z, rays = _log_depth(points, valid)
-    mixed = np.zeros(valid.shape, dtype=bool)
+    terms = _log_depth(points, valid)
+    scratch = np.empty_like(terms)
+    mixed = np.zeros(valid.size, dtype=bool)
     half = np.float32(jump / 2)
     for dy, dx in _DIRECTIONS:
+        offset = dy * valid.shape[1] + dx
+        if 3 * offset >= valid.size:
+            continue
         # the step from each pixel to the next along (dy, dx), stored at the first: a jump up or
         # down (judged at half the jump), or not steeper than 80 deg up, or down
-        first, second = _aligned(valid.shape, ((0, 0), (dy, dx)))
-        rise, steepest = _rise(log_z, rays, first, second)
-        up, down, not_up, not_down = np.zeros((4, *valid.shape), dtype=bool)
-        np.less_equal(rise, steepest, out=not_up[first])
-        np.greater_equal(rise, -steepest, out=not_down[first])
+        size = valid.size - offset
+        rise, steepest = _rise(terms, offset, scratch)
+        steps = np.empty((4, valid.size), dtype=bool)
+        steps[:, size:] = False  # from the pixels without a neighbour there
+        up, down, not_up, not_down = steps[:, :size]
+        np.less_equal(rise, steepest, out=not_up)
+        np.greater_equal(rise, -steepest, out=not_down)
         steepest += half
-        np.greater(rise, steepest, out=up[first])
-        np.less(rise, -steepest, out=down[first])
+        np.greater(rise, steepest, out=up)
+        np.less(rise, -steepest, out=down)
+        up, down, not_up, not_down = _unwrapped(steps, valid.shape, dx, 1)
         # pixel p = q + 2 d: outer step from q, inner steps from q + d and p, outer step from p + d
-        outer, before, after, beyond = _aligned(valid.shape, tuple((k * dy, k * dx) for k in range(4)))
+        outer, before, after, beyond = (slice(k * offset, valid.size - (3 - k) * offset) for k in range(4))
         mixed[after] |= up[before] & up[after] & not_up[outer] & not_up[beyond]
         mixed[after] |= down[before] & down[after] & not_down[outer] & not_down[beyond]
-    return mixed
+    return mixed.reshape(valid.shape)
 
 
 def _row_blocks(height: int, width: int) -> list[slice]:
@@ -206,9 +226,10 @@ def _moments(points: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndar
     centre : (3,) ndarray of float64
         The (x', y', q) subtracted, :func:`_centre`.
     """
-    moments = np.zeros((10, *valid.shape))
+    moments = np.empty((10, *valid.shape))
     moments[0] = valid
     coordinates = moments[1:4]
+    coordinates.fill(0.0)
     np.divide(1.0, points[2], out=coordinates[2], where=valid)
     for k in range(2):
         np.multiply(points[k], coordinates[2], out=coordinates[k], where=valid)
@@ -275,9 +296,11 @@ def _choose_windows(residual: np.ndarray, eligible: np.ndarray, window: int) -> 
         padded[half * (1 + sy) : half * (1 + sy) + height, half * (1 + sx) : half * (1 + sx) + width]
         for sy, sx in _CANDIDATES
     ]
-    smallest = candidates[0].copy()
-    for candidate in candidates[1:]:
-        np.minimum(smallest, candidate, out=smallest)
+    # the minimum over the 3 x 3 centres: over the rows, then over the columns
+    rows = np.minimum(padded[:height], padded[2 * half :])
+    np.minimum(rows, padded[half : half + height], out=rows)
+    smallest = np.minimum(rows[:, :width], rows[:, 2 * half :])
+    np.minimum(smallest, rows[:, half : half + width], out=smallest)
     limit = _PLANARITY * smallest
     # number of the first candidate within the limit: min over k of k, or k + 16 beyond it
     number = np.full(residual.shape, 16, dtype=np.int8)
@@ -315,13 +338,14 @@ def _level_planes(
     min_count : float
         Fewest valid pixels of a usable window.
     slopes : bool, optional
-        Whether the windows' centroids and noise are computed, for :func:`_normal_slopes` (not at the base level).
+        Whether the windows' centroids and noise are computed, for :func:`_normal_slopes`, and the normals
+        normalised (not at the base level, whose few normals taken are normalised once gathered).
 
     Returns
     -------
     normal : (3, h, w) ndarray of float64
-        Unit normal, unoriented, of the window centred on each cell (meaningless
-        where that window is not usable).
+        Unit normal (with ``slopes``; else ``(a, b, e)``, not normalised), unoriented, of the window centred on
+        each cell (meaningless where that window is not usable).
     residual : (h, w) ndarray of float64
         Its mean squared depth residual, m^2; inf where not usable.
     source : (h, w) ndarray of intp
@@ -340,25 +364,28 @@ def _level_planes(
     for plane in moments:
         _box(plane, window, out=plane)
     usable = (_box(edges.astype(np.float32), window) == 0) & (moments[0] >= min_count)
-    # The planes overwrite the count and first moments block by block, once read.
+    # The planes overwrite the count, first and second moments block by block, once read.
     normal, residual = moments[1:4], moments[0]
     for rows in _row_blocks(*usable.shape):
         count, sums, squares = moments[0, rows], moments[1:4, rows], moments[4:, rows]
         with np.errstate(invalid="ignore", divide="ignore"):  # empty or collinear windows: discarded below
             inverse = 1.0 / count
             mean = sums * inverse
-            sxx, sxy, sxq, syy, syq, sqq = (squares[k] - sums[i] * mean[j] for k, (i, j) in enumerate(_PAIRS))
+            for k, (i, j) in enumerate(_PAIRS):
+                np.subtract(squares[k], sums[i] * mean[j], out=squares[k])
+            sxx, sxy, sxq, syy, syq, sqq = squares
             determinant = sxx * syy - sxy * sxy
             planar = usable[rows] & (determinant > _MIN_DETERMINANT * sxx * syy)
             inverse_determinant = 1.0 / determinant
-            a = (syy * sxq - sxy * syq) * inverse_determinant
-            b = (sxx * syq - sxy * sxq) * inverse_determinant
+            a, b, e = sums  # the sums are no longer needed: the plane takes their place
+            np.multiply(syy * sxq - sxy * syq, inverse_determinant, out=a)
+            np.multiply(sxx * syq - sxy * sxq, inverse_determinant, out=b)
             mean += centre[:, None, None]
-            normal[0, rows], normal[1, rows], normal[2, rows] = a, b, mean[2] - a * mean[0] - b * mean[1]
+            np.subtract(mean[2] - a * mean[0], b * mean[1], out=e)
             # residual variance of q times z^4 = 1 / mean(q)^4: depth units
             variance = (sqq - a * sxq - b * syq) * inverse
-            scale = _normalise(normal[:, rows])
             if slopes:
+                scale = _normalise(normal[:, rows])
                 centroid[:, rows] = mean[:2]
                 noise[rows] = np.maximum(variance, 0.0) * (sxx + syy) * inverse_determinant * scale * scale
             mean[2] *= mean[2]
@@ -383,7 +410,7 @@ def _normal_slopes(
     half: int,
     needed: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Each needed cell's chosen plane as a first-order model of the normal around its window's centroid.
+    """Model the normal around the centroid of the chosen window of some cells, to first order.
 
     A plane fitted to a window of a curved surface has, to first order, the
     surface's normal at the centroid of the window's points, not at a pixel
@@ -411,23 +438,24 @@ def _normal_slopes(
         Flat index of each cell's chosen window's centre, -1 for none.
     half : int
         Half a window, cells.
-    needed : (h, w) ndarray of bool
-        The cells whose models are computed.
+    needed : (k,) ndarray of intp
+        Flat indices of the cells whose models are computed.
 
     Returns
     -------
-    model : (14, h, w) ndarray of float64
+    model : (14, k) ndarray of float64
         The chosen window's normal ``n`` (3) and centroid ``m`` (2), the slopes
         ``J`` (3 x 2, row-major: d n_k / d x', d n_k / d y'; along the one axis
         with neighbours when only one has) and the variance ``V`` of ``J``'s
         rows (xx, xy, yy, 1/(x' y') units: a correction ``J o`` has variance
-        ``o^T V o`` per unit of normal direction); zero at the cells not needed or without a window.
-    known : (h, w) ndarray of bool
+        ``o^T V o`` per unit of normal direction); zero at the cells without a window.
+    known : (k,) ndarray of bool
         The slopes are known along both axes.
     """
     height, width = source.shape
-    cells = np.flatnonzero(needed & (source >= 0))
-    chosen = source.reshape(-1)[cells]
+    chosen = source.reshape(-1)[needed]
+    cells = np.flatnonzero(chosen >= 0)  # the needed cells with a window
+    chosen = chosen[cells]
     row, column = np.divmod(chosen, width)
     normals, centroids, residuals = normal.reshape(3, -1), centroid.reshape(2, -1), residual.reshape(-1)
     values = np.empty((14, cells.size))
@@ -472,11 +500,13 @@ def _normal_slopes(
     variance[0] = pxx * (pxx * sxx + pxy * sxy) + pxy * (pxx * sxy + pxy * syy)
     variance[1] = pxx * (pxy * sxx + pyy * sxy) + pxy * (pxy * sxy + pyy * syy)
     variance[2] = pxy * (pxy * sxx + pyy * sxy) + pyy * (pxy * sxy + pyy * syy)
-    model = np.zeros((14, height * width))
+    if cells.size == needed.size:
+        return values, both
+    model = np.zeros((14, needed.size))
     model[:, cells] = values
-    known = np.zeros(height * width, dtype=bool)
+    known = np.zeros(needed.size, dtype=bool)
     known[cells] = both
-    return model.reshape(14, height, width), known.reshape(height, width)
+    return model, known
 
 
 def _carry(model: np.ndarray, rays: np.ndarray) -> np.ndarray:
@@ -539,7 +569,8 @@ def _window_planes(
     eligible = valid & ~edges
     moments, centre = _moments(points, valid)
     levels = _levels(window, max_window)
-    rays = moments[1:3] + centre[:2, None, None] if levels > 1 else None  # x', y' (meaningless where invalid)
+    # x', y' (2, H * W) (meaningless where invalid)
+    rays = (moments[1:3] + centre[:2, None, None]).reshape(2, -1) if levels > 1 else None
     pooled = _pool(moments) if levels > 1 else None
     min_count = max(3, math.ceil(min_fraction * window * window - 1e-9))
     base, _, base_source, smallest, _, _ = _level_planes(moments, centre, edges, eligible, window, min_count, False)
@@ -562,31 +593,34 @@ def _window_planes(
             break
         planes.append((normal, centroid, noise, residual, source))
         last += taken
-    out = base.reshape(3, -1).take(np.where(base_source >= 0, base_source, 0), axis=1).reshape(3, *valid.shape)
-    out[:, base_source < 0] = np.nan
+    out = np.full((3, *valid.shape), np.nan)
     flat = out.reshape(3, -1)
+    pixel = np.flatnonzero((last == 0) & (base_source >= 0))
+    normal = base.reshape(3, -1).take(base_source.reshape(-1)[pixel], axis=1)
+    _normalise(normal)
+    flat[:, pixel] = normal
     # each pixel takes the normal of its last level's cell (flat indices of both), carried to the pixel
     pixels, cells = [], []
     for level, (*_, source) in enumerate(planes, start=1):
         pixels.append(np.flatnonzero(last == level))
-        row, column = np.divmod(pixels[-1], valid.shape[1])
-        cells.append((row >> level) * source.shape[1] + (column >> level))
-    for pixel, cell, model in zip(pixels, cells, _level_models(planes, cells, window // 2)):
+        row, column = (np.arange(size, dtype=np.int32) >> level for size in valid.shape)
+        cells.append((row[:, None] * np.int32(source.shape[1]) + column).reshape(-1).take(pixels[-1]))
+    for pixel, (model, column) in zip(pixels, _level_models(planes, cells, window // 2)):
         for block in range(0, pixel.size, _BLOCK):
             part = slice(block, block + _BLOCK)
-            flat[:, pixel[part]] = _carry(model.take(cell[part], axis=1), rays.reshape(2, -1).take(pixel[part], axis=1))
+            flat[:, pixel[part]] = _carry(model.take(column[part], axis=1), rays.take(pixel[part], axis=1))
     return out
 
 
-def _level_models(planes: list, cells: list, half: int) -> list[np.ndarray]:
+def _level_models(planes: list, cells: list, half: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """Model the normal (:func:`_normal_slopes`) in the cells of each level from 1 that a pixel takes.
 
     A cell without slopes on both axes takes the mean of its 2 x 2 smaller cells' that had them; so, from the
     largest level down, a level's models are computed at the cells its pixels take (``cells[k]``: flat indices,
     for the pixels whose last level is k + 1) and at the smaller cells of the cells above that lack slopes.
-    Returns the models (14, cells) of each level, zero at the cells not needed.
+    Returns, for each level, the models (14, m) of those cells and the column of each pixel's cell among them.
     """
-    found = []
+    found = []  # per level from the largest: models, slopes known, cells, column of each cell's model, grid shape
     lacking = None  # the cells of the level above without slopes on both axes
     for level in range(len(planes), 0, -1):
         normal, centroid, noise, residual, source = planes[level - 1]
@@ -594,20 +628,47 @@ def _level_models(planes: list, cells: list, half: int) -> list[np.ndarray]:
         needed.reshape(-1)[cells[level - 1]] = True
         if lacking is not None:
             needed |= lacking.repeat(2, axis=0).repeat(2, axis=1)[: source.shape[0], : source.shape[1]]
+        needed = np.flatnonzero(needed)
         model, known = _normal_slopes(normal, centroid, noise, residual, source, half, needed)
-        lacking = needed & ~known
-        found.append((model, known))
-    models = []
-    slopes = sloped = None  # of the previous level's cells: the slopes of the normal (9, h, w), known on both axes
-    for model, known in reversed(found):
-        if slopes is not None:
-            weight = _pool(sloped.astype(np.float64))
-            fill = ~known & (weight > 0)
-            model[5:, fill] = (_pool(slopes * sloped) / np.where(fill, weight, 1.0))[:, fill]
-            known |= fill
-        slopes, sloped = model[5:], known
-        models.append(model.reshape(14, -1))
-    return models
+        lacking = np.zeros(source.shape, dtype=bool)
+        lacking.reshape(-1)[needed[~known]] = True
+        column = np.full(source.size, -1)  # -1: no model
+        column[needed] = np.arange(needed.size)
+        found.append((model, known, needed, column, source.shape))
+    found.reverse()
+    for level, smaller in zip(found[1:], found):
+        _fill_slopes(level, smaller)
+    return [(model, column.take(pixel_cells)) for (model, _, _, column, _), pixel_cells in zip(found, cells)]
+
+
+def _fill_slopes(level: tuple, smaller: tuple) -> None:
+    """Give a level's cells lacking slopes the mean of their 2 x 2 smaller cells' known slopes, in place.
+
+    Parameters
+    ----------
+    level, smaller : tuple
+        A level's and the level below's models (14, m), slopes known (m,) bool, cells (m,) (flat indices),
+        column of each cell's model (h * w,) (-1: none) and grid shape (h, w), as :func:`_level_models` keeps
+        them: every smaller cell of a cell lacking slopes has a model. Summed in :func:`_pool`'s order.
+    """
+    model, known, cells, _, shape = level
+    slopes, sloped, _, columns, grid = smaller
+    lacking = np.flatnonzero(~known)
+    row, column = np.divmod(cells[lacking], shape[1])
+    total = weight = None
+    for dy, dx in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        inside = (2 * row + dy < grid[0]) & (2 * column + dx < grid[1])
+        child = columns.take(np.where(inside, (2 * row + dy) * grid[1] + 2 * column + dx, 0))
+        present = inside & sloped.take(child)
+        term = slopes[5:].take(child, axis=1) * present
+        if total is None:
+            total, weight = term, present.astype(np.float64)
+        else:
+            total += term
+            weight += present
+    fill = weight > 0
+    model[5:, lacking[fill]] = total[:, fill] / weight[fill]
+    known[lacking[fill]] = True
 
 
 def plane_normals(
