@@ -1,5 +1,6 @@
 """Co-registration (surffin.method.registration) against rendered scenes with known geometry."""
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -25,6 +26,7 @@ from surffin.simulate import simulate_campaign
 from surffin.simulate.camera import PinholeCamera, look_at_pose, to_camera
 from surffin.simulate.scene import Material, Scene, Texture, box_faces, keyed_rng, plane_face, render
 from surffin.simulate.truth import reference_coordinates
+from surffin.simulate.validation import VALIDATION
 
 CAMERA = PinholeCamera(width=160, height=120, fx=565.0 / 4, fy=579.0 / 4)
 CROP = Roi((8, 112), (12, 148))
@@ -612,6 +614,32 @@ def test_clouds_flag_a_view_whose_texture_disagrees_with_the_others(stepped):
     assert [view for view, info in clean.items() if info.get("texture_outlier")] == []
     assert flagged["v02"]["texture_outlier"] and not flagged["v01"].get("texture_outlier")
     assert flagged["v02"]["texture_deviation"] > 1.5 * flagged["v01"]["texture_deviation"]
+
+
+@pytest.mark.slow  # ~10 s: three specimens rendered (the wall reduced to 4 views, no scene)
+def test_refinement_that_settles_a_few_hundredths_of_a_pixel_from_its_optimum_is_accepted(tmp_path):
+    """val-concrete seed 1, item C1: with exact recorded poses, view v04's refinement hopped by 0.02-0.05 px.
+
+    Its projective pairs change with each step, so the steps never fell below the 0.01 px tolerance and the
+    item failed ("did not converge in 12 iterations", correction 0.21 mm, 0.034 deg): a whole campaign
+    stopped on a view whose recorded pose was right.
+    """
+    validation = VALIDATION["val-concrete"]
+    # every view draws from its own keyed stream: C1 renders as in the whole campaign
+    preset = dataclasses.replace(validation.preset, wall_distances=(0.3, 0.6), wall_tilts=(0.0, 20.0), scenes=())
+    simulate_campaign(tmp_path / "c", preset, 1, fmt=validation.fmt, units=validation.units, poses=validation.poses)
+    ingest = ingest_item(read_campaign(tmp_path / "c"), "C1").compute()
+    refined = registration_maps(ingest, method="poses")
+    recorded = registration_maps(ingest, method="poses", refine=False)
+    moved = refined.attrs["diagnostics"]["v04"]
+    assert moved["settled"] and moved["converged"]
+    assert moved["correction_mm"] < 0.5 and moved["correction_deg"] < 0.1  # measured 0.21 mm, 0.034 deg
+    # the recorded poses are the simulator's true ones: v04's settled pose is no farther from them than the
+    # poses of the views whose steps fell below the tolerance (median offsets measured: v04 0.12 px, v01-v03
+    # 0.07, 0.15, 0.22 px: on this concrete the refinement moves exact poses by a few tenths of a millimetre)
+    offset = np.hypot(refined["map_x"] - recorded["map_x"], refined["map_y"] - recorded["map_y"]).median(("y", "x"))
+    assert not any(refined.attrs["diagnostics"][view]["settled"] for view in ("v01", "v02", "v03"))
+    assert float(offset.sel(view="v04")) <= float(offset.sel(view=["v01", "v02", "v03"]).max()) < 0.3
 
 
 def two_blocks(name, blocks, design):

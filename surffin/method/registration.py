@@ -633,7 +633,9 @@ def _refine_pose(start, geometric, textured, correlation, prior, units, toleranc
     transform : (4, 4) ndarray
         The refined view-to-reference transform.
     info : dict
-        ``iterations`` (in all), ``converged``, and of the last iteration
+        ``iterations`` (in all), ``converged`` (also when ``settled``: the last level's
+        steps hopped without falling below ``tolerance`` but the last two stayed within
+        :data:`_COARSE` times it, a tenth of a pixel), and of the last iteration
         ``pairs`` and ``texture_pairs`` (residuals of each kind), their robust
         standard deviations ``shape_deviation_mm`` and ``texture_deviation``
         (in the texture's local standard deviations) and ``constrained``
@@ -642,6 +644,7 @@ def _refine_pose(start, geometric, textured, correlation, prior, units, toleranc
     transform, info, converged = start, {"iterations": 0}, False
     for level in range(len(_REFINE_LEVELS)):
         last = level == len(_REFINE_LEVELS) - 1
+        motions = []  # surface motion of each step of this level, metres
         for _ in range(iterations):
             (shape_jacobian, shape_residual), (texture_jacobian, texture_residual) = (
                 geometric(transform),
@@ -666,10 +669,14 @@ def _refine_pose(start, geometric, textured, correlation, prior, units, toleranc
             )
             transform = transform @ _rigid(step)
             info["iterations"] += 1
-            converged = bool(np.max(np.abs(step * units)) <= tolerance * (1.0 if last else _COARSE))
+            motions.append(float(np.max(np.abs(step * units))))
+            converged = motions[-1] <= tolerance * (1.0 if last else _COARSE)
             if converged:
                 break
-    return transform, {**info, "converged": converged}
+    # Projective pairs change as the pose moves: steps can hop around the optimum by a few hundredths of a
+    # pixel for ever. Settled: the last two steps of the last level within the coarse levels' bound.
+    settled = not converged and len(motions) >= 2 and max(motions[-2:]) <= tolerance * _COARSE
+    return transform, {**info, "converged": converged or settled, "settled": settled}
 
 
 def _texture(intensity: np.ndarray, valid: np.ndarray, sigma: float, dtype=np.float64) -> np.ndarray:

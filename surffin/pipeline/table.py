@@ -66,7 +66,7 @@ STAGES = {
         Stage("ingest", ingest_item, ("views",), "ingest/{item}.zarr", 3),
         _chain("aoi", 6),
         _chain("reflectance", 5),
-        _chain("registration", 6),
+        _chain("registration", 7),
         _chain("features", 6),
         Stage("training", training_set, ("features",), "training.zarr", 4),
         Stage("labels", labels_stage, ("features", "training"), "labels/{scene}.zarr", 4),
