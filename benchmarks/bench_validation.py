@@ -8,9 +8,9 @@ rendered at each seed into ``--workdir`` (kept, and reused by later runs) and ev
 workflow's parameters (:func:`surffin.analysis.evaluation.evaluate_campaign`). By default the campaigns of an
 ideal camera; ``--imperfect`` adds those of a real camera's imperfections
 (:data:`~surffin.simulate.validation.IMPERFECT`: each alone, ``val-all`` together, ``val-bare-raw`` raw files
-without poses or intrinsics), whose truth is still the true geometry; the ceiling then shows what the true AOI
-and the true instrument function make of the imperfect data (with the residual systematics, which the instrument
-truth records as their factor, ``systematic``). ``--imperfections NAMES``
+without poses or intrinsics, ``val-curved-all`` all on curved panels), whose truth is still the true geometry;
+the ceiling then shows what the true AOI and the true instrument function make of the imperfect data (with the
+residual systematics, which the instrument truth records as their factor, ``systematic``). ``--imperfections NAMES``
 renders every chosen campaign with those imperfections instead of its own (names of
 :data:`~surffin.simulate.imperfections.STANDARD`, e.g. ``--campaigns tiny --imperfections all``, a quick end-to-end
 check). Printed per campaign and seed, then the mean and the range over the seeds:

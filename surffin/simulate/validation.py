@@ -15,9 +15,10 @@ a floor of 5 counts, and range noise 0.9 mm at 1500 counts growing as
 nor its roughness relation goes in; the specimens carry no roughness.
 
 Every campaign uses the paper's camera (640 x 480, fx 565, fy 579) and no
-repeat calibration set. The campaigns of :data:`IMPERFECT` are ``val-plaster``
-seen by a real camera: each of its imperfections alone, all together, and raw
-files without poses or intrinsics (:mod:`~surffin.simulate.imperfections`).
+repeat calibration set. The campaigns of :data:`IMPERFECT` are seen by a real
+camera: ``val-plaster`` with each of its imperfections alone, all together, and
+raw files without poses or intrinsics, and ``val-curved`` with all of them
+(:mod:`~surffin.simulate.imperfections`).
 ``benchmarks/bench_validation.py`` renders them at several seeds and scores the
 method against their truth; ``surffin simulate --validation NAME`` renders one.
 """
@@ -193,8 +194,6 @@ _IMPERFECT = {
     "val-signed-raw": ("signed-raw,settings", "raw", "mm", True),
     "val-bare-raw": ("no-intrinsics", "raw", "mm", False),
 }
-#: Names of the validation campaigns that render a real camera's imperfections.
-IMPERFECT = tuple(_IMPERFECT)
 
 
 def _campaigns() -> dict[str, Validation]:
@@ -213,10 +212,10 @@ def _campaigns() -> dict[str, Validation]:
         ),
         "val-raw": Validation(replace(plaster, name="val-raw"), fmt="raw", units="mm"),
         "val-curved": Validation(_curved()),
+        **imperfect,
         "val-curved-all": Validation(
             replace(_curved(), name="val-curved-all"), imperfections=named_imperfections("all")
         ),
-        **imperfect,
     }
 
 
@@ -248,3 +247,5 @@ def _campaigns() -> dict[str, Validation]:
 #:   and the systematics), ``val-signed-raw`` (Coord3D_ABCY16s with settings sidecars and
 #:   camera.match_settings) and ``val-bare-raw`` (raw files without poses or intrinsics).
 VALIDATION: dict[str, Validation] = _campaigns()
+#: Names of the validation campaigns that render a real camera's imperfections.
+IMPERFECT = tuple(name for name, validation in VALIDATION.items() if validation.imperfections.any)
