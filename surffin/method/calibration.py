@@ -1305,7 +1305,7 @@ class _SpilledViews:
 
     The second pass needs each wall view's distance and AOI again: computing them
     twice cost about half of the calibration's time. Kept in memory they would grow
-    with the number of views (about 7 MB a full-sensor view), so they go to a
+    with the number of views (about 6.5 MB a 640 x 480 view), so they go to a
     temporary folder, removed on exit, and are read back one at a time, exactly
     as computed.
     """

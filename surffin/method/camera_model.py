@@ -77,7 +77,7 @@ class CameraModel:
         nowhere. ``inf`` without distortion or when no fold is found up to
         ``r2 = 4`` (63 deg off the axis).
         """
-        return _fold(self.distortion)
+        return _fold(tuple(self.coefficients()))
 
     def project(self, points: np.ndarray, origin: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, np.ndarray]:
         """Return the column and row where camera-frame points are seen.
@@ -156,9 +156,9 @@ def _radial(r2, k1, k2, k3, k4, k5, k6):
 
 
 @lru_cache(maxsize=64)
-def _fold(distortion: tuple[float, ...]) -> float:
-    """Return :meth:`CameraModel.fold` of distortion coefficients (cached: a scan of the radial factor)."""
-    k1, k2, _, _, k3, k4, k5, k6 = np.pad(np.asarray(distortion, dtype=np.float64), (0, _TERMS - len(distortion)))
+def _fold(coefficients: tuple[float, ...]) -> float:
+    """Return :meth:`CameraModel.fold` of all eight distortion coefficients (cached: a scan of the radial factor)."""
+    k1, k2, _, _, k3, k4, k5, k6 = coefficients
     r2 = _FOLD_SCAN
     numerator, denominator = 1 + r2 * (k1 + r2 * (k2 + r2 * k3)), 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
     # d(r radial)/dr = radial + 2 r2 d(radial)/d(r2) > 0, and the denominator keeps its sign

@@ -477,7 +477,7 @@ def _normal_slopes(
             change = np.where(used, normals[:, other] - own_normal, 0.0)
             products = np.stack((step[0] * step[0], step[0] * step[1], step[1] * step[1]))
             scatter += products
-            # np.empty holds the noise of windows that are not usable: an unused neighbour adds nothing
+            # an unused neighbour adds nothing: beyond the border (read at cell 0) or empty, its noise is NaN
             spread += products * np.where(used, own_noise + noises[other], 0.0)
             moments += change[:, None] * step[None]
     determinant = scatter[0] * scatter[2] - scatter[1] * scatter[1]
