@@ -10,9 +10,12 @@ its work in a worker process (``surffin.pipeline.jobs.in_worker``).
 - **spec/min** = N / wall time of the snakemake command (parsing, DAG, every job, bookkeeping).
 - **peak MB** = the RSS of the snakemake process and all its children, summed, sampled every 0.2 s
   (at least **max process MB**: the largest single process's high-water mark, ``wait4``'s ru_maxrss).
-- **stage** = the work the jobs logged (``<stage> done in X s`` of ``run_stage``/``run_ingest``,
-  else the job's benchmark ``s``) x its threads, over the ``cores x wall`` budget; **overhead** =
-  1 - stage: snakemake's own time and idle cores.
+- **jobs** = the jobs' wall times as they log them (``job done in X s``, read by
+  ``surffin.pipeline.jobs.job_seconds``) x their threads, over the ``cores x wall`` budget; **overhead** =
+  1 - jobs: snakemake's own time and idle cores; **snakemake CPU s**: the snakemake process's own CPU
+  time (user + system, its worker processes not counted). Snakemake's ``benchmark:`` directive, which
+  the rules no longer carry, sampled the memory of the whole process tree twice a second per job: 12-15 s
+  of system time in a 48-specimen run, against 0.6 s without it.
 - ``--variants``: ``scene figures`` (``item_figures: scenes``), ``ilp scheduler``, ``chunks 256``
   (against 512), ``item stages 2 threads`` (``--set-threads``: one per-item stage at a time, two dask
   threads) and ``processes`` (no ``force-use-threads``: each job a spawned snakemake process).
@@ -27,6 +30,7 @@ The machine is shared: wall times move with its load (printed with each run); me
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import multiprocessing
@@ -60,8 +64,6 @@ VARIANTS = {
     "item stages 2 threads": (("--set-threads", *(f"{rule}=2" for rule in ITEM_STAGES)), {}),
     "processes": (("--workflow-profile", NO_THREADS_PROFILE), {}),
 }
-#: A job's logged work: the last "<stage> done in" line of its log.
-_DONE = re.compile(r"INFO \w+ done in ([0-9.]+) s$", re.M)
 
 
 # --- output --------------------------------------------------------------------------------
@@ -88,26 +90,21 @@ def load() -> str:
 
 @dataclasses.dataclass
 class Job:
-    """One finished snakemake job: its rule, cores held, wall time and logged work (None: none logged)."""
+    """One finished snakemake job: its rule, cores held and wall time as its log says."""
 
     rule: str
     threads: int
     seconds: float
-    logged_seconds: float | None
-
-    @property
-    def stage_seconds(self) -> float:
-        """Its work: the logged stage time, else the job's wall time."""
-        return self.seconds if self.logged_seconds is None else self.logged_seconds
 
 
 @dataclasses.dataclass
 class Usage:
-    """What a command used: wall seconds, peak summed RSS of its process tree, largest process's peak."""
+    """What a command used: wall seconds, peak summed RSS of its process tree, largest process's peak, own CPU s."""
 
     wall: float
     peak_mb: float
     max_process_mb: float
+    own_cpu: float
 
 
 @dataclasses.dataclass
@@ -141,24 +138,20 @@ def render(directory: Path, specimens: int) -> float:
 
 
 def parse_jobs(output: str) -> list[Job]:
-    """Read the jobs of a snakemake run from its printed job blocks and their benchmark and log files."""
+    """Read the jobs of a snakemake run from its printed job blocks and their log files."""
+    from surffin.pipeline.jobs import job_seconds
+
     jobs = []
     for block in re.split(r"^\[.*\]\n(?=(?:local)?rule )", output, flags=re.M)[1:]:
-        bench = re.search(r"^\s+benchmark: (.+)$", block, re.M)
-        if bench is None:  # the target rule `all`
+        log = re.search(r"^\s+log: (.+)$", block, re.M)
+        if log is None:  # the target rule `all`
             continue
         threads = re.search(r"^\s+threads: (\d+)$", block, re.M)
-        values = dict(zip(*(line.split("\t") for line in Path(bench.group(1)).read_text().splitlines()[:2])))
-        log_text = Path(re.search(r"^\s+log: (.+)$", block, re.M).group(1)).read_text()
-        done = _DONE.findall(log_text)
-        jobs.append(
-            Job(
-                rule=re.match(r"(?:local)?rule (\w+):", block).group(1),
-                threads=int(threads.group(1)) if threads else 1,
-                seconds=float(values["s"]),
-                logged_seconds=float(done[-1]) if done else None,
-            )
-        )
+        seconds = job_seconds(log.group(1))
+        rule = re.match(r"(?:local)?rule (\w+):", block).group(1)
+        if seconds is None:
+            sys.exit(f"the {rule} job's log {log.group(1)} does not say how long it took")
+        jobs.append(Job(rule, int(threads.group(1)) if threads else 1, seconds))
     return jobs
 
 
@@ -190,17 +183,21 @@ def measured(cmd: list[str], cwd: Path, output: Path) -> tuple[int, Usage]:
     """Run ``cmd`` with stdout and stderr into ``output``; its exit code and what it used.
 
     The peak summed RSS is sampled every 0.2 s while it runs (and is at least the largest process's
-    peak); CPU time and that largest peak come from ``wait4`` (the command and its waited-for descendants).
+    peak), and so is the command's own CPU time (its last sample); that largest peak comes from ``wait4``
+    (the command and its waited-for descendants).
     """
     with open(output, "w") as stream:
         start = time.perf_counter()
         child = subprocess.Popen(cmd, stdout=stream, stderr=subprocess.STDOUT, cwd=cwd)
-        peak, done = [0.0], threading.Event()
+        peak, own, done = [0.0], [0.0], threading.Event()
 
         def sample():
             process = psutil.Process(child.pid)
             while not done.wait(0.2):
                 peak[0] = max(peak[0], tree_rss_mb(process))
+                with contextlib.suppress(psutil.Error):
+                    times = process.cpu_times()
+                    own[0] = times.user + times.system
 
         sampler = threading.Thread(target=sample, daemon=True)
         sampler.start()
@@ -210,7 +207,7 @@ def measured(cmd: list[str], cwd: Path, output: Path) -> tuple[int, Usage]:
         sampler.join()
         child.returncode = os.waitstatus_to_exitcode(status)  # reaped here, for wait4's rusage
     largest = rusage.ru_maxrss / 1024
-    usage = Usage(wall, max(peak[0], largest), largest)
+    usage = Usage(wall, max(peak[0], largest), largest, own[0])
     return child.returncode, usage
 
 
@@ -254,7 +251,7 @@ def report_campaigns(runs: list[Run]) -> None:
     """Print the run summary and, per run, where the time goes per rule."""
     rows = []
     for run in runs:
-        stage = run.share(sum(j.threads * j.stage_seconds for j in run.jobs))
+        busy = run.share(sum(j.threads * j.seconds for j in run.jobs))
         rows.append(
             [
                 run.specimens,
@@ -262,8 +259,9 @@ def report_campaigns(runs: list[Run]) -> None:
                 len(run.jobs),
                 round(run.usage.wall),
                 round(60 * run.specimens / run.usage.wall, 1),
-                f"{stage:.0%}",
-                f"{1 - stage:.0%}",
+                f"{busy:.0%}",
+                f"{1 - busy:.0%}",
+                round(run.usage.own_cpu, 1),
                 round(run.usage.peak_mb),
                 round(run.usage.max_process_mb),
                 run.load,
@@ -277,8 +275,9 @@ def report_campaigns(runs: list[Run]) -> None:
             "jobs",
             "wall s",
             "spec/min",
-            "stage",
+            "jobs",
             "overhead",
+            "snakemake CPU s",
             "peak MB",
             "max process MB",
             "before",
@@ -292,15 +291,13 @@ def report_campaigns(runs: list[Run]) -> None:
                 len(jobs),
                 jobs[0].threads,
                 statistics.median(j.seconds for j in jobs),
-                statistics.median(j.stage_seconds for j in jobs),
                 f"{run.share(sum(j.threads * j.seconds for j in jobs)):.0%}",
-                f"{run.share(sum(j.threads * j.stage_seconds for j in jobs)):.0%}",
             ]
             for rule, jobs in by_rule(run).items()
         ]
         table(
-            f"Where the time goes, {run.specimens} specimens, {run.label} (s: job wall; stage: logged work)",
-            ["rule", "jobs", "threads", "median s", "median stage s", "s share", "stage share"],
+            f"Where the time goes, {run.specimens} specimens, {run.label} (s: a job's wall time, as it logs it)",
+            ["rule", "jobs", "threads", "median s", "share"],
             rows,
         )
 

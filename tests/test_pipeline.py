@@ -9,6 +9,7 @@ import shutil
 import subprocess
 import sys
 import threading
+import time
 from concurrent.futures.process import BrokenProcessPool
 
 import dask
@@ -22,7 +23,7 @@ import surffin
 from surffin.io.store import open_store
 from surffin.method.features import variability
 from surffin.method.stages import ITEM_CHAIN, aoi_stage, process_item
-from surffin.pipeline.jobs import dask_scheduler, in_worker, logging_to
+from surffin.pipeline.jobs import dask_scheduler, in_worker, job_seconds, logging_to
 from surffin.pipeline.parameters import read_config
 from surffin.pipeline.run import run_calibration, run_ingest, run_stage
 from surffin.pipeline.table import STAGES, input_paths
@@ -103,6 +104,19 @@ def test_jobs_in_threads_keep_their_own_log(tmp_path):
         text = (tmp_path / f"{name}.log").read_text()
         assert text.count(f"{name} step") == 20 and other not in text
     assert not logging.getLogger("surffin").handlers
+
+
+def test_a_job_logs_its_wall_time_only_when_it_finishes(tmp_path):
+    start = time.perf_counter()
+    with logging_to(tmp_path / "done.log"):
+        time.sleep(0.2)
+    elapsed = time.perf_counter() - start
+    with pytest.raises(RuntimeError), logging_to(tmp_path / "failed.log"):
+        raise RuntimeError("broken")
+    assert 0.2 <= job_seconds(tmp_path / "done.log") <= elapsed + 0.01
+    assert "job failed" in (tmp_path / "failed.log").read_text()
+    assert job_seconds(tmp_path / "failed.log") is None
+    assert job_seconds(tmp_path / "missing.log") is None
 
 
 def test_jobs_in_threads_share_the_scheduler_and_restore_it(tmp_path):

@@ -77,13 +77,8 @@ def by_quantity(rows):
     return {row["quantity"]: row for row in rows}
 
 
-def every_row(tmp_path):
+def every_row():
     """Rows of every kind: calibration, sensitivity, features, roughness, classification, runtime."""
-    benchmarks = []
-    for k, seconds in enumerate([1.5, 2.0, 0.5]):
-        path = tmp_path / f"b{k}.tsv"
-        path.write_text(f"s\th:m:s\tmax_rss\n{seconds}\t0:00:01\t100\n")
-        benchmarks.append(path)
     return comparison(
         summary=SUMMARY,
         specimens=["S1", "S2", "S3", "S4"],
@@ -91,12 +86,12 @@ def every_row(tmp_path):
         slopes=SLOPES,
         separation=SEPARATION,
         relation=RELATION,
-        runtime={"T1": {"views": 5, "benchmarks": benchmarks}},
+        runtime={"T1": {"views": 5, "seconds": 4.0}},
     )
 
 
-def test_rows_carry_the_numbers_of_their_sources(tmp_path):
-    rows = by_quantity(every_row(tmp_path))
+def test_rows_carry_the_numbers_of_their_sources():
+    rows = by_quantity(every_row())
     assert rows["T1: accuracy of label (unclassified counts as wrong)"]["surffin"] == 0.991
     assert rows["T1: accuracy of label_filtered (unclassified counts as wrong)"]["paper"] == ACCURACY["label_filtered"]
     assert rows["n falls from the smoothest to the roughest specimen"]["surffin"] == "yes"
@@ -108,8 +103,8 @@ def test_rows_carry_the_numbers_of_their_sources(tmp_path):
     assert rows["correlation C-D (Table 2)"]["surffin"] == -0.97
 
 
-def test_every_row_says_where_its_number_comes_from(tmp_path):
-    rows = every_row(tmp_path)
+def test_every_row_says_where_its_number_comes_from():
+    rows = every_row()
     assert {row["section"] for row in rows} == {
         "calibration",
         "sensitivity",
@@ -133,8 +128,8 @@ def test_every_row_says_where_its_number_comes_from(tmp_path):
         ("correlation C-D (Table 2)", "coef_variability = Table 2's"),
     ],
 )
-def test_rows_echoing_a_preset_input_are_by_construction(tmp_path, quantity, preset_input):
-    row = by_quantity(every_row(tmp_path))[quantity]
+def test_rows_echoing_a_preset_input_are_by_construction(quantity, preset_input):
+    row = by_quantity(every_row())[quantity]
     assert row["origin"] == "by construction"
     assert preset_input in row["note"]
 
@@ -153,8 +148,8 @@ def test_rows_echoing_a_preset_input_are_by_construction(tmp_path, quantity, pre
         "leave-one-out error of the roughness from n, mm",
     ],
 )
-def test_measured_rows_are_not_by_construction(tmp_path, quantity):
-    assert by_quantity(every_row(tmp_path))[quantity]["origin"] == "measured"
+def test_measured_rows_are_not_by_construction(quantity):
+    assert by_quantity(every_row())[quantity]["origin"] == "measured"
 
 
 def test_the_preset_inputs_the_notes_name_are_the_papers():
@@ -185,7 +180,7 @@ def test_order_claims_can_fail():
 
 
 def test_markdown_table_and_file(tmp_path):
-    rows = every_row(tmp_path)
+    rows = every_row()
     text = to_markdown(rows)
     table = [line for line in text.splitlines() if line.startswith("| ")]
     assert len(table) == len(rows) + 2 and all(line.count(" | ") == 6 for line in table)  # header, rule, rows
@@ -199,3 +194,29 @@ def test_markdown_table_and_file(tmp_path):
         tmp_path / "out" / "cmp.md", summary=tmp_path / "summary.json", specimens=["S1", "S2", "S3", "S4"]
     )
     assert "| classification | T1: accuracy of label " in out.read_text()
+
+
+def test_the_runtime_sums_the_scene_jobs_logged_times(tmp_path):
+    (tmp_path / "summary.json").write_text(json.dumps(SUMMARY))
+    logs = []
+    for k, seconds in enumerate([1.5, 2.0, 0.5]):
+        logs.append(tmp_path / f"job{k}.log")
+        logs[-1].write_text(
+            f"2026-11-27 02:00:00,000 INFO aoi: inputs\n2026-11-27 02:00:01,000 INFO job done in {seconds} s\n"
+        )
+    quantity = "| runtime | T1: 5 views from raw files to labels, s | 300 | "
+    out = run_paper_comparison(
+        tmp_path / "cmp.md",
+        summary=tmp_path / "summary.json",
+        specimens=["S1"],
+        runtime={"T1": {"views": 5, "logs": logs}},
+    )
+    assert quantity + "4 |" in out.read_text()
+    logs[1].write_text("2026-11-27 02:00:00,000 ERROR job failed\n")
+    out = run_paper_comparison(
+        tmp_path / "cmp.md",
+        summary=tmp_path / "summary.json",
+        specimens=["S1"],
+        runtime={"T1": {"views": 5, "logs": logs}},
+    )
+    assert quantity + "n/a |" in out.read_text()

@@ -1,8 +1,8 @@
 """Every quantitative claim of the paper beside surffin's number for the same quantity.
 
 :func:`comparison` reads what the workflow wrote (``summary.json``, the calibration
-diagnostics, the sensitivity analysis, the roughness relation, the jobs' benchmark
-files) and returns one row per claim: the paper's value, surffin's, and where
+diagnostics, the sensitivity analysis, the roughness relation, the scenes' job times)
+and returns one row per claim: the paper's value, surffin's, and where
 surffin's comes from, and its origin (:data:`ORIGINS`): whether surffin's value
 echoes an input the simulator's ``paper`` preset took from the paper, which is no
 evidence for the paper's claim, or is measured. :func:`write_comparison`
@@ -224,9 +224,9 @@ def _calibration_rows(diag: Mapping) -> list[dict]:
     return rows
 
 
-def _read_table(path, delimiter: str = ",") -> list[dict]:
+def _read_table(path) -> list[dict]:
     with open(path, newline="") as handle:
-        return list(csv.DictReader(handle, delimiter=delimiter))
+        return list(csv.DictReader(handle))
 
 
 def _number(text) -> float | None:
@@ -386,14 +386,13 @@ def _roughness_rows(relation: Mapping | None) -> list[dict]:
 def _runtime_rows(runtime: Mapping[str, Mapping]) -> list[dict]:
     rows = []
     for scene, spec in runtime.items():
-        seconds = sum(float(_read_table(path, "\t")[0]["s"]) for path in spec["benchmarks"])
         rows.append(
             _row(
                 "runtime",
                 f"{scene}: {spec['views']} views from raw files to labels, s",
                 RUNTIME_S,
-                seconds,
-                "logs/benchmarks/*/" + scene + ".tsv",
+                spec["seconds"],
+                f"logs/*/{scene}.log",
                 _MAIN,
                 _MEASURED,
                 f"paper: ~5 min for {RUNTIME_VIEWS} views; here the wall times of its jobs (ingest to labels) summed",
@@ -427,7 +426,8 @@ def comparison(
     relation : mapping, optional
         ``roughness/relation.json``; None when no relation was fitted.
     runtime : mapping, optional
-        Scene -> ``{"views": int, "benchmarks": [TSV paths of its jobs]}``.
+        Scene -> ``{"views": int, "seconds": float or None}``: the wall time of its jobs from its
+        view files to its labels, summed (None: not measured).
 
     Returns
     -------

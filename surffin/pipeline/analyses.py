@@ -14,7 +14,7 @@ from pathlib import Path
 
 from surffin.analysis.sensitivity import DEFAULT_DRAWS, write_sensitivity
 from surffin.grid import Roi
-from surffin.pipeline.jobs import logging_to
+from surffin.pipeline.jobs import job_seconds, logging_to
 from surffin.pipeline.table import STAGES
 
 __all__ = ["run_calibration_diagnostics", "run_sensitivity", "run_paper_comparison", "run_figures", "run_export"]
@@ -126,10 +126,13 @@ def run_paper_comparison(
 
     Parameters
     ----------
-    output, specimens, runtime
+    output, specimens
         As for :func:`~surffin.analysis.reproduction.write_comparison`.
     summary, diagnostics, sensitivity, slopes, relation : path-like
         Its ``inputs``; ``summary`` is required.
+    runtime : mapping, optional
+        Scene -> ``{"views": int, "logs": [the log files of its jobs from view files to labels]}``;
+        their times (:func:`~surffin.pipeline.jobs.job_seconds`) are summed, None if one is missing.
     log_path : path-like, optional
         The job's log file.
 
@@ -148,7 +151,11 @@ def run_paper_comparison(
         "relation": relation,
     }
     with logging_to(log_path):
-        return write_comparison(output, inputs, specimens=specimens, runtime=runtime)
+        times = {}
+        for scene, spec in (runtime or {}).items():
+            seconds = [job_seconds(path) for path in spec["logs"]]
+            times[scene] = {"views": spec["views"], "seconds": None if None in seconds else sum(seconds)}
+        return write_comparison(output, inputs, specimens=specimens, runtime=times)
 
 
 def run_figures(

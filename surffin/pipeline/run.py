@@ -81,14 +81,11 @@ def run_ingest(
     from surffin.io.ingest import ingest_item
 
     with logging_to(log_path):
-        start = time.perf_counter()
         camp = read_campaign(campaign, require_calibration=False, check_views=False)
         ds = ingest_item(camp, item)
         log.info("ingest %s: %d views, cube %s", item, ds.sizes["view"], dict(ds.sizes))
         # The cube is in memory: writing it needs no worker threads.
-        path = _write(ds, store, chunks, "ingest", scheduler=get_sync)
-        log.info("ingest done in %.2f s", time.perf_counter() - start)
-        return path
+        return _write(ds, store, chunks, "ingest", scheduler=get_sync)
 
 
 def _open_inputs(stores: Mapping[str, str | os.PathLike], chunks: Mapping[str, int] | None) -> dict:
@@ -151,7 +148,6 @@ def run_stage(
         raise ValueError(f"stage {stage.name} reads the stores {list(stage.inputs)}, got {sorted(stores)}")
     params = dict(params or {})
     with logging_to(log_path), dask_scheduler(scheduler, threads):
-        start = time.perf_counter()
         inputs = _open_inputs(stores, chunks)
         log.info("%s: inputs %s, parameters %s", stage.name, {k: str(v) for k, v in stores.items()}, params)
         ds = function(**inputs, **params)
@@ -159,9 +155,7 @@ def run_stage(
             **ds.attrs,
             **provenance(stage.name, params, {name: str(path) for name, path in stores.items()}),
         }
-        path = _write(ds, output, chunks, stage.name)
-        log.info("%s done in %.2f s", stage.name, time.perf_counter() - start)
-        return path
+        return _write(ds, output, chunks, stage.name)
 
 
 def run_calibration(

@@ -83,7 +83,7 @@ STAGES = {
             4,
         ),
         Stage("sensitivity", write_sensitivity, (), "sensitivity", 3),
-        Stage("comparison", write_comparison, ("summary", "diagnostics", "sensitivity"), "paper-comparison.md", 3),
+        Stage("comparison", write_comparison, ("summary", "diagnostics", "sensitivity"), "paper-comparison.md", 4),
     )
 }
 

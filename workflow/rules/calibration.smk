@@ -5,8 +5,6 @@ rule calibration:
         directory(f"{PROCESSED}/calibration.zarr"),
     log:
         f"{LOGS}/calibration.log",
-    benchmark:
-        f"{LOGS}/benchmarks/calibration.tsv"
     priority: RESULTS_FIRST
     threads: 1
     resources:

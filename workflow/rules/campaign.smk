@@ -7,8 +7,6 @@ checkpoint default_campaign:
         f"{DEFAULT_CAMPAIGN}/campaign.yaml",
     log:
         f"{LOGS}/default_campaign.log",
-    benchmark:
-        f"{LOGS}/benchmarks/default_campaign.tsv"
     params:
         preset=config["default_campaign"]["preset"],
         seed=config["default_campaign"]["seed"],

@@ -6,8 +6,6 @@ rule training:
         directory(f"{PROCESSED}/training.zarr"),
     log:
         f"{LOGS}/training.log",
-    benchmark:
-        f"{LOGS}/benchmarks/training.tsv"
     priority: RESULTS_FIRST
     threads: 1
     resources:
@@ -36,8 +34,6 @@ rule labels:
         directory(f"{PROCESSED}/labels/{{scene}}.zarr"),
     log:
         f"{LOGS}/labels/{{scene}}.log",
-    benchmark:
-        f"{LOGS}/benchmarks/labels/{{scene}}.tsv"
     priority: RESULTS_FIRST
     threads: 1
     resources:
@@ -68,8 +64,6 @@ rule summary:
         f"{PROCESSED}/summary.json",
     log:
         f"{LOGS}/summary.log",
-    benchmark:
-        f"{LOGS}/benchmarks/summary.tsv"
     priority: RESULTS_FIRST
     threads: 1
     resources:

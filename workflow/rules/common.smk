@@ -42,6 +42,9 @@ SENSITIVITY = {key: f"{PROCESSED}/sensitivity/{name}" for key, name in SENSITIVI
 # The jobs on the way to summary.json run first; the diagnostics, sensitivity and figures take
 # the cores left over (benchmarks/bench_campaign.py).
 RESULTS_FIRST = 10
+# The sensitivity analysis needs no input: it takes a core before the figures, rather than
+# running alone on one at the end of a run.
+BEFORE_FIGURES = 1
 _PLAN = []
 
 
@@ -107,20 +110,14 @@ def comparison_inputs(wildcards):
 
 
 def runtime_settings(wildcards):
-    """Per scene, its view count and the benchmark files of its jobs from raw views to labels."""
+    """Per scene, its view count and the logs of its jobs from raw views to labels (they time themselves)."""
     return {
         name: {
             "views": len(item.views),
-            "benchmarks": [
-                expand(getattr(rules, rule).benchmark, item=name, scene=name)[0] for rule in (*CHAIN, "labels")
-            ],
+            "logs": [expand(getattr(rules, rule).log[0], item=name, scene=name)[0] for rule in (*CHAIN, "labels")],
         }
         for name, item in plan().campaign.scenes.items()
     }
-
-
-def runtime_benchmarks(wildcards):
-    return [path for spec in runtime_settings(wildcards).values() for path in spec["benchmarks"]]
 
 
 def final_outputs(wildcards):

@@ -5,8 +5,6 @@ rule calibration_repeat:
         directory(f"{PROCESSED}/diagnostics/calibration-repeat.zarr"),
     log:
         f"{LOGS}/diagnostics/calibration-repeat.log",
-    benchmark:
-        f"{LOGS}/benchmarks/diagnostics/calibration-repeat.tsv"
     threads: 1
     resources:
         mem_mb=1500,
@@ -49,8 +47,6 @@ rule calibration_diagnostics:
         ),
     log:
         f"{LOGS}/diagnostics/calibration.log",
-    benchmark:
-        f"{LOGS}/benchmarks/diagnostics/calibration.tsv"
     threads: 1
     resources:
         mem_mb=2000,

@@ -12,8 +12,6 @@ rule ingest:
         directory(stage_output("ingest")),
     log:
         f"{LOGS}/ingest/{{item}}.log",
-    benchmark:
-        f"{LOGS}/benchmarks/ingest/{{item}}.tsv"
     priority: RESULTS_FIRST
     threads: 1
     resources:
@@ -34,8 +32,6 @@ rule aoi:
         directory(stage_output("aoi")),
     log:
         f"{LOGS}/aoi/{{item}}.log",
-    benchmark:
-        f"{LOGS}/benchmarks/aoi/{{item}}.tsv"
     priority: RESULTS_FIRST
     threads: 1
     resources:
@@ -64,8 +60,6 @@ rule reflectance:
         directory(stage_output("reflectance")),
     log:
         f"{LOGS}/reflectance/{{item}}.log",
-    benchmark:
-        f"{LOGS}/benchmarks/reflectance/{{item}}.tsv"
     priority: RESULTS_FIRST
     threads: 1
     resources:
@@ -92,8 +86,6 @@ rule registration:
         directory(stage_output("registration")),
     log:
         f"{LOGS}/registered/{{item}}.log",
-    benchmark:
-        f"{LOGS}/benchmarks/registered/{{item}}.tsv"
     priority: RESULTS_FIRST
     threads: 1
     resources:
@@ -122,8 +114,6 @@ rule features:
         directory(stage_output("features")),
     log:
         f"{LOGS}/features/{{item}}.log",
-    benchmark:
-        f"{LOGS}/benchmarks/features/{{item}}.tsv"
     priority: RESULTS_FIRST
     threads: 1
     resources:

@@ -34,8 +34,6 @@ rule calibration_figures:
         ),
     log:
         f"{LOGS}/figures/calibration.log",
-    benchmark:
-        f"{LOGS}/benchmarks/figures/calibration.tsv"
     threads: 1
     resources:
         mem_mb=1500,
@@ -67,8 +65,6 @@ rule classification_figures:
         ],
     log:
         f"{LOGS}/figures/classification.log",
-    benchmark:
-        f"{LOGS}/benchmarks/figures/classification.tsv"
     threads: 1
     resources:
         mem_mb=1000,
@@ -91,8 +87,6 @@ rule item_figures:
         ),
     log:
         f"{LOGS}/figures/features/{{item}}.log",
-    benchmark:
-        f"{LOGS}/benchmarks/figures/features/{{item}}.tsv"
     threads: 1
     resources:
         mem_mb=1000,
@@ -117,8 +111,6 @@ rule scene_figures:
         ),
     log:
         f"{LOGS}/figures/labels/{{scene}}.log",
-    benchmark:
-        f"{LOGS}/benchmarks/figures/labels/{{scene}}.tsv"
     threads: 1
     resources:
         mem_mb=1000,

@@ -1,13 +1,10 @@
 rule paper_comparison:
     input:
         unpack(comparison_inputs),
-        benchmarks=runtime_benchmarks,
     output:
         f"{PROCESSED}/paper-comparison.md",
     log:
         f"{LOGS}/paper-comparison.log",
-    benchmark:
-        f"{LOGS}/benchmarks/paper-comparison.tsv"
     threads: 1
     resources:
         mem_mb=500,

@@ -5,8 +5,6 @@ rule roughness_relation:
         f"{PROCESSED}/roughness/relation.json",
     log:
         f"{LOGS}/roughness/relation.log",
-    benchmark:
-        f"{LOGS}/benchmarks/roughness/relation.tsv"
     threads: 1
     resources:
         mem_mb=1000,
@@ -25,8 +23,6 @@ rule roughness_map:
         directory(f"{PROCESSED}/roughness/{{scene}}.zarr"),
     log:
         f"{LOGS}/roughness/{{scene}}.log",
-    benchmark:
-        f"{LOGS}/benchmarks/roughness/{{scene}}.tsv"
     threads: 1
     resources:
         mem_mb=1000,
@@ -59,8 +55,6 @@ rule roughness_figures:
         ),
     log:
         f"{LOGS}/figures/roughness/{{scene}}.log",
-    benchmark:
-        f"{LOGS}/benchmarks/figures/roughness/{{scene}}.tsv"
     threads: 1
     resources:
         mem_mb=1000,

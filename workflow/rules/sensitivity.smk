@@ -17,8 +17,7 @@ rule sensitivity:
         ),
     log:
         f"{LOGS}/sensitivity.log",
-    benchmark:
-        f"{LOGS}/benchmarks/sensitivity.tsv"
+    priority: BEFORE_FIGURES
     threads: 1
     resources:
         mem_mb=500,
