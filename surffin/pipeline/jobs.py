@@ -84,7 +84,8 @@ def job_seconds(path: str | os.PathLike) -> float | None:
 
     The workflow's jobs time themselves in their logs (:func:`logging_to`): snakemake's
     ``benchmark:`` measures the whole snakemake process and its workers when jobs run in
-    its threads, and its sampling of their memory cost ~10 % of a campaign's CPU.
+    its threads, and its sampling of their memory took 12-15 s of system CPU in a
+    48-specimen campaign of ~175 core-s (``benchmarks/bench_campaign.py``).
     """
     try:
         done = _DONE.findall(Path(path).read_text())
