@@ -4,10 +4,11 @@ import json
 
 import numpy as np
 import pytest
+import xarray as xr
 import yaml
 
 from surffin.cli import main
-from surffin.errors import CampaignError
+from surffin.errors import CampaignError, StoreError
 from surffin.grid import Roi
 from surffin.io.campaign import Camera, read_campaign, read_truth
 from surffin.io.ingest import ingest_item
@@ -569,3 +570,24 @@ def test_scenes_without_specimens_or_extra_training_are_refused_before_any_job(c
     assert main(["check", str(root)]) == 0 and "no specimens: the workflow runs it only with extra_training" in (
         capsys.readouterr().out
     )
+
+
+# --- an external calibration store acquired with other settings ------------------------------------------
+
+
+def test_external_calibration_without_recorded_settings_is_refused_naming_the_store(campaign, tmp_path):
+    root, doc = campaign
+    settings_in({})(root, doc)  # every view: exposure_us 250, gain 2
+    doc.pop("calibration", None)
+    doc["camera"]["match_settings"] = ["exposure_us"]
+    write_yaml(root, doc)
+    # a calibration store of the campaign's 8 x 6 sensor, made by hand, that records no settings
+    coef = xr.DataArray(np.ones((5, 6, 8)), dims=("term", "y", "x"), coords={"y": np.arange(6), "x": np.arange(8)})
+    store = write_store(
+        xr.Dataset({"coef": coef}, attrs={"surffin_stage": "calibration", "scale_k": 1.0}), tmp_path / "cal.zarr"
+    )
+    with pytest.raises(StoreError) as raised:
+        Plan.read(root, {**read_config(), "campaign": str(root), "calibration_store": str(store)})
+    message = str(raised.value)
+    assert message.startswith(f"{store}: the calibration records no acquisition settings, but ")
+    assert f"{root.resolve() / 'campaign.yaml'} asks camera.match_settings ['exposure_us'] to match" in message

@@ -243,8 +243,9 @@ def test_the_plan_refuses_a_calibration_acquired_with_other_settings(tiny_campai
     with pytest.raises(surffin.StoreError) as raised:
         Plan.read(root, config)
     message = str(raised.value)
-    assert message.startswith(f"{calibration}: setting 'exposure_us' is 250 in the calibration's views but 300")
-    assert "camera.match_settings" in message
+    assert message.startswith(f"{calibration}: setting 'exposure_us' differs between the calibration's views (250 in ")
+    assert "calibration/wall/" in message and "(300 in " in message and "specimens/" in message
+    assert "camera.match_settings asks them equal" in message
     # the gain differs nowhere, and is not asked to match anyway
     doc["camera"]["match_settings"] = ["gain"]
     (root / "campaign.yaml").write_text(yaml.safe_dump(doc))

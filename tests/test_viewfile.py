@@ -236,8 +236,9 @@ def test_signed_invalid_marker_read_as_unsigned_is_refused(tmp_path, sensor):
     a[2:], b[2:], c[2:] = -32768, -32768, -32768
     path = tmp_path / "v.raw"
     path.write_bytes(abcy16_bytes(sensor, a, b, c, 500, signed=True))
-    with pytest.raises(ViewFileError, match="looks like Coord3D_ABCY16s data.*invalid marker"):
+    with pytest.raises(ViewFileError, match=r"v\.raw: looks like Coord3D_ABCY16s data.*invalid marker") as raised:
         read_view(path, **sensor)
+    assert str(raised.value).startswith(f"{path}: ")
     assert read_view(path, abcy16={"signed": True}, **sensor).valid.sum() == 2 * sensor["width"]
 
 
@@ -342,8 +343,9 @@ def test_ply_with_filtered_points_is_refused(tmp_path, synthetic_view, sensor):
     path.write_bytes(ply_file(header, None, binary_rows=kept.astype("<f4").tobytes()))
     match = r"v\.ply: 44 vertices, fewer than width\*height = 8\*6 = 48.*filterPoints on.*turn filterPoints off"
     for read in (check_view, read_view):
-        with pytest.raises(ViewFileError, match=match):
+        with pytest.raises(ViewFileError, match=match) as raised:
             read(path, **sensor)
+        assert str(raised.value).startswith(f"{path}: ")
 
 
 # --- pose and settings sidecars -----------------------------------------------------------------
@@ -652,6 +654,20 @@ BROKEN = {
         r"no vertex property of the intensity \(intensity, scalar_Intensity, intensities\).*camera\.ply_intensity",
         True,
     ),
+    "ply-list-intensity": (
+        file_bytes(
+            "v.ply",
+            ply_file(
+                ["format ascii 1.0", "element vertex 48", *(f"property float {name}" for name in "xyz")]
+                + ["property list uchar float intensity"],
+                [[0.0, 0.0, 1.0, 1, 5.0]] * 48,
+                newline=b"\r",
+            ),
+        ),
+        r"vertex property 'intensity' is a list; expected a scalar numeric property",
+        True,
+    ),
+    "ply-cr-not-ply": (file_bytes("v.ply", b"PLY\rformat ascii 1.0\r"), "does not start with the line 'ply'", True),
     "ply-integer-x": (ply_of(x=np.zeros(48, "i4")), "'x' is int32; expected a scalar float or double", True),
     "ply-truncated": (edited(written("v.ply"), truncated(-10)), "truncated PLY", True),
     "ply-garbled-ascii": (

@@ -38,6 +38,7 @@ from surffin.io.viewfile import (
     View,
     abcy16_encoding,
     check_view,
+    describe_groups,
     list_views,
     npz_headers,
     pose_problem,
@@ -65,7 +66,6 @@ NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 
 _UNITS = ("m", "mm")
 _DISTORTION_SIZES = (4, 5, 8)
-_SHOWN_VIEWS = 3
 _TOP_LEVEL = "(top level)"
 _MERGE_TAG = "tag:yaml.org,2002:merge"
 _SHOW = reprlib.Repr()
@@ -787,16 +787,11 @@ class _Builder:
         for name in self.camera.match_settings:
             groups = setting_values(settings, name)
             if len(groups) > 1:
-                found = "; ".join(
-                    f"{value} in {len(names)} view(s): "
-                    f"{', '.join(names[:_SHOWN_VIEWS])}{', ...' if len(names) > _SHOWN_VIEWS else ''}"
-                    for value, names in groups.items()
-                )
                 raise _Invalid(
                     key,
-                    f"setting {name!r} differs between views ({found}); expected one value in every view of the "
-                    f"calibration and of the items, given by its <stem>.meta.json: acquire them with the same "
-                    f"settings, or remove {name!r} from camera.match_settings",
+                    f"setting {name!r} differs between views ({describe_groups(groups)}); expected one value in "
+                    f"every view of the calibration and of the items, given by its <stem>.meta.json: acquire them "
+                    f"with the same settings, or remove {name!r} from camera.match_settings",
                 )
 
     def calibration(self, entry: dict) -> Calibration:

@@ -30,7 +30,7 @@ import io
 import json
 import math
 import zipfile
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from operator import attrgetter
 from pathlib import Path
@@ -59,6 +59,7 @@ __all__ = [
     "check_view",
     "read_settings",
     "setting_values",
+    "describe_groups",
     "pose_problem",
     "pose_sidecar_path",
     "sidecar_path",
@@ -426,6 +427,17 @@ def setting_values(settings: Mapping[str, Mapping], name: str) -> dict[str, list
     for view, values in settings.items():
         groups.setdefault(repr(values[name]) if name in values else "missing", []).append(view)
     return groups
+
+
+def describe_groups(groups: Mapping[str, Sequence[str]], shown: int = 3) -> str:
+    """Say which views hold which value of :func:`setting_values`: ``"250 in 2 view(s): a, b; 400 in 1 view(s): c"``.
+
+    At most ``shown`` views are named per value.
+    """
+    return "; ".join(
+        f"{value} in {len(views)} view(s): {', '.join(views[:shown])}{', ...' if len(views) > shown else ''}"
+        for value, views in groups.items()
+    )
 
 
 def write_view(

@@ -55,7 +55,7 @@ import xarray as xr
 from surffin.errors import CalibrationError, StoreError
 from surffin.io.ingest import describe_file
 from surffin.io.store import open_store, provenance
-from surffin.io.viewfile import read_settings, setting_values
+from surffin.io.viewfile import describe_groups, read_settings, setting_values
 from surffin.method.geometry import DEFAULT_JUMP, DEFAULT_MAX_WINDOW, DEFAULT_WINDOW, frame_angle_of_incidence
 from surffin.method.noise import NOISE_VIEWS, NoiseStatistics
 
@@ -1724,13 +1724,17 @@ def _check_settings(path, recorded: Mapping | None, campaign: Campaign) -> None:
             f"camera.match_settings {list(names)} to match; refit it with this surffin from views with "
             f"<stem>.meta.json sidecars, or remove camera.match_settings"
         )
-    items = {str(view): read_settings(view) for item in campaign.items.values() for view in item.views}
+    items = {
+        str(view.relative_to(campaign.root)): read_settings(view)
+        for item in campaign.items.values()
+        for view in item.views
+    }
     for name in names:
         theirs, ours = setting_values(recorded, name), setting_values(items, name)
         if len(theirs.keys() | ours.keys()) > 1:
             raise StoreError(
-                f"{path}: setting {name!r} is {', '.join(sorted(theirs))} in the calibration's views but "
-                f"{', '.join(sorted(ours))} in the items' views of {campaign.path}; camera.match_settings asks "
-                f"them equal: use a calibration acquired with the items' settings, or remove {name!r} from "
+                f"{path}: setting {name!r} differs between the calibration's views ({describe_groups(theirs)}) and "
+                f"the items' views of {campaign.path} ({describe_groups(ours)}); camera.match_settings asks them "
+                f"equal: use a calibration acquired with the items' settings, or remove {name!r} from "
                 f"camera.match_settings"
             )
