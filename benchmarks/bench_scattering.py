@@ -9,10 +9,11 @@ The references run on a sample of pixels and are extrapolated per pixel.
 Second table: seconds per item (wall and CPU, median of repeats, dask's synchronous
 scheduler) of :func:`~surffin.method.stages.features_stage` on numpy- and on
 dask-backed inputs (as ``run_stage`` passes them for an item within one chunk and a
-larger one) and of the fit kernel on the item's registered views, with the kernel's
-share of the stage. The inputs come from the item's chain (``bench_chunks.run_chain``)
-on the campaign (default: the ``paper`` preset rendered into a temporary folder) with
-the calibration store (default: fitted first, ~1 min).
+larger one) and of two of its parts on the item's registered views, the fit kernel and
+the residual correlation, with their shares of the stage's CPU time (on a shared machine
+the wall times swing with the load, the CPU times much less). The inputs come from the
+item's chain (``bench_chunks.run_chain``) on the campaign (default: the ``paper`` preset
+rendered into a temporary folder) with the calibration store (default: fitted first, ~1 min).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from bench_chunks import CONFIG, chain_parameters, quiet_logs, run_chain
 from scipy.optimize import curve_fit
 
 from surffin.io.store import open_store
+from surffin.method.features import DEFAULT_SIZE, residual_correlation
 from surffin.method.scattering import fit_scattering, fit_scattering_arrays, scattering_model
 from surffin.method.stages import ITEM_CHAIN, features_stage
 from surffin.pipeline import parameters
@@ -145,11 +147,16 @@ def stage_table(args):
             params = {key: params[key] for key in step.keywords if key in params}
             lazy = {key: open_store(stores[key]) for key in step.inputs}
             loaded = {key: ds.load() for key, ds in lazy.items()}
-            views = [loaded["registered"][key].transpose("y", "x", "view").values for key in ("reflectance", "aoi")]
+            registered = loaded["registered"]
+            views = [registered[key].transpose("y", "x", "view").values for key in ("reflectance", "aoi")]
+            fit = fit_scattering(registered["reflectance"], registered["aoi"])
             runs = {
                 "stage, numpy-backed inputs": lambda: features_stage(**loaded, **params).compute(),
                 "stage, dask-backed inputs": lambda: features_stage(**lazy, **params).compute(),
                 "fit kernel": lambda: fit_scattering_arrays(*views),
+                "residual correlation": lambda: residual_correlation(
+                    registered["reflectance"], registered["aoi"], fit, max_lag=params.get("size", DEFAULT_SIZE) - 1
+                ),
             }
             times = {what: [] for what in runs}
             with dask.config.set(scheduler="synchronous"):

@@ -22,7 +22,9 @@ from surffin.method.features import (
     variance_inflation,
     views_by_incidence,
 )
+from surffin.method.registration import warp
 from surffin.method.scattering import fit_scattering, scattering_model
+from surffin.method.stages import features_stage
 
 Y0, X0 = 40, 70
 """Sensor position of the crops' top-left pixel: grids never start at 0."""
@@ -238,6 +240,12 @@ def test_views_by_incidence():
         views_by_incidence(cube * np.nan)
 
 
+def test_views_by_incidence_takes_the_median_of_an_even_count_halfway():
+    # medians 20, 21, 19 and 22 deg: "a" would go last on its upper middle value, first on its lower one
+    aoi = np.deg2rad(np.array([[10.0, 30, np.nan, np.nan], [21, 21, 21, 21], [19, 18, 20, 19], [5, 50, 22, np.nan]]))
+    assert views_by_incidence(grid(aoi[:, None, :], view=["a", "b", "c", "d"])) == ["c", "a", "b", "d"]
+
+
 def test_first_available_takes_each_pixel_from_the_first_view_that_has_it():
     rng = np.random.default_rng(2)
     data = rng.random((3, 10, 12))
@@ -252,6 +260,68 @@ def test_first_available_takes_each_pixel_from_the_first_view_that_has_it():
                 assert values.values[y, x] == data[finite[0], y, x]
             else:
                 assert np.isnan(values.values[y, x])
+
+
+def views_of_an_item(shape=(18, 22), seed=3):
+    """Three views of a textured plane on their own grids, and maps onto the first view's, with holes.
+
+    The first view misses a block and scattered pixels, the second part of that block (and maps
+    off its grid at the left edge), the third part of that part: pixels take their value from
+    each of the three views, and some from none.
+    """
+    rng = np.random.default_rng(seed)
+    view = ["a", "b", "c"]
+    aoi = np.deg2rad(np.array([10.0, 25.0, 40.0]))[:, None, None] + rng.normal(0, 0.02, (3, *shape))
+    reflectance = 0.7 * np.cos(aoi) * (1 + 0.05 * rng.standard_normal((3, *shape)))
+    reflectance[0, 5:11, 6:14] = np.nan
+    reflectance[0, rng.integers(0, shape[0], 15), rng.integers(0, shape[1], 15)] = np.nan
+    reflectance[1, 5:9, 6:10] = np.nan
+    reflectance[2, 4:9, 5:11] = np.nan
+    aoi[2, 14:, :] = np.nan
+    noise = np.full((3, *shape), 0.01)
+    y, x = np.mgrid[Y0 : Y0 + shape[0], X0 : X0 + shape[1]].astype(np.float32)
+    map_x = np.stack([x, x - 1.25, x + 0.4])
+    map_y = np.stack([y, y + 0.5, y - 0.3])
+    own = xr.Dataset(
+        {
+            "reflectance": grid(reflectance, view=view),
+            "reflectance_noise": grid(noise, view=view),
+            "aoi": grid(aoi, view=view),
+        }
+    )
+    maps = xr.Dataset({"map_x": grid(map_x, view=view), "map_y": grid(map_y, view=view)})
+    registered = xr.Dataset(
+        {"reflectance": warp(own["reflectance"], maps), "aoi": warp(own["aoi"], maps), **maps.data_vars}
+    )
+    return registered, own[["reflectance", "reflectance_noise"]], own[["aoi"]]
+
+
+@pytest.mark.parametrize("chunks", [None, {"y": 7, "x": 9}])
+def test_features_stage_takes_the_variability_from_the_first_view_that_has_it(chunks):
+    registered, reflectance, aoi = views_of_an_item()
+    order = views_by_incidence(aoi["aoi"])
+    assert order == ["a", "b", "c"]
+    own = xr.concat(
+        [
+            variability(
+                reflectance["reflectance"].sel(view=v),
+                aoi["aoi"].sel(view=v),
+                size=5,
+                relative_noise=reflectance["reflectance_noise"].sel(view=v),
+            )
+            for v in order
+        ],
+        dim="view",
+    )
+    expected, source = first_available(warp(own, registered[["map_x", "map_y"]].sel(view=order)))
+    assert set(np.unique(source.values)) == {-1, 0, 1, 2}
+    if chunks:
+        registered, reflectance, aoi = (ds.chunk(chunks) for ds in (registered, reflectance, aoi))
+    ds = features_stage(registered, reflectance, aoi, size=5, variability_size=5).compute()
+    np.testing.assert_array_equal(ds["variability"].values, expected.values.astype(np.float32))
+    np.testing.assert_array_equal(ds["variability_view"].values, source.values)
+    assert ds["variability"].attrs["noise_corrected"] == 1
+    assert ds.attrs["variability_views"] == order
 
 
 def lambertian_view(shape=(30, 40), rho=0.6, texture=0.0, seed=0):

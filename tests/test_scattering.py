@@ -131,3 +131,32 @@ def test_the_fit_stays_where_every_view_is_lit(n):
     out = fit_scattering_arrays(scattering_model(theta, 1.0, n)[None], theta[None])
     assert out["status"][0] == 0
     np.testing.assert_allclose([out["R0"][0], out["n"][0]], [1.0, n], rtol=1e-6)
+
+
+def test_inputs_of_any_layout_and_float_type_fit_alike_and_are_left_alone():
+    r, theta, _, _ = noisy_pixels(300, seed=4)
+    r[::9, 2] = np.nan
+    r32, theta32 = r.astype(np.float32), theta.astype(np.float32)
+    expected = fit_scattering_arrays(r32.astype(np.float64), theta32.astype(np.float64))
+    # (y, x, view) views of (view, y, x) cubes, as fit_scattering hands them over: the view axis is the slowest
+    view_major = [np.ascontiguousarray(a.T).T.reshape(20, 15, 5) for a in (r32, theta32)]
+    assert not view_major[0].flags.c_contiguous
+    for args in ([r32, theta32], view_major, [a.astype(np.float64) for a in view_major]):
+        before = [a.copy() for a in args]
+        out = fit_scattering_arrays(*args)
+        for key, value in expected.items():
+            np.testing.assert_array_equal(out[key].reshape(-1), value, err_msg=key)
+        for a, b in zip(args, before):
+            np.testing.assert_array_equal(a, b)  # NaN and all: the inputs are not written to
+
+
+def test_high_incidence_pixels_match_scipy_least_squares():
+    # views at 50-67 deg: 4 of the 10 start values of n (above 1.6) light none of them and are not tried
+    rng = np.random.default_rng(8)
+    theta = np.deg2rad(np.array([51.0, 55, 60, 65]) + rng.normal(0, 1, (40, 4)))
+    n = rng.uniform(0.6, 1.0, 40)
+    r = scattering_model(theta, 0.7, n[:, None]) + rng.normal(0, 0.002, theta.shape)
+    out = fit_scattering_arrays(r, theta)
+    for i in np.flatnonzero(out["status"] == 0):
+        np.testing.assert_allclose([out["R0"][i], out["n"][i]], scipy_fit(r[i], theta[i]), rtol=1e-6)
+    assert (out["status"] == 0).mean() > 0.8

@@ -166,19 +166,32 @@ def _local_std_image(
     With ``noise`` (a variance image), the box's mean noise variance is taken
     out of the variance first; a pixel without a noise variance is missing.
     """
-    valid = np.isfinite(image) if noise is None else np.isfinite(image) & np.isfinite(noise)
+    valid = np.isfinite(image)
+    if noise is not None:
+        valid &= np.isfinite(noise)
     centre = image[valid].mean() if valid.any() else 0.0
-    values = np.where(valid, image - centre, 0.0)
+    values = image - centre
+    np.copyto(values, 0.0, where=~valid)
     ones = np.ones(size)
     count = _correlate(valid.astype(np.float64), ones)
     total = _correlate(values, ones)
-    squares = _correlate(values * values, ones)
-    keep = valid & (count >= max(min_count, ddof + 1))
+    squares = _correlate(np.multiply(values, values, out=values), ones)
+    keep = count >= max(min_count, ddof + 1)
+    keep &= valid
     safe = np.where(keep, count, 1.0)
-    variance = (squares - total * total / safe) / np.where(keep, count - ddof, 1.0)
+    # variance = (squares - total^2 / safe) / (count - ddof), in place
+    variance = squares
+    total *= total
+    variance -= np.divide(total, safe, out=total)
+    count -= ddof
+    np.copyto(count, 1.0, where=~keep)
+    variance /= count
     if noise is not None:
-        variance -= _correlate(np.where(valid, noise, 0.0), ones) / safe
-    return np.where(keep, np.sqrt(np.maximum(variance, 0.0)), np.nan)
+        mean_noise = _correlate(np.where(valid, noise, 0.0), ones)
+        variance -= np.divide(mean_noise, safe, out=mean_noise)
+    np.sqrt(np.maximum(variance, 0.0, out=variance), out=variance)
+    np.copyto(variance, np.nan, where=~keep)
+    return variance
 
 
 def _variability_image(
@@ -188,9 +201,14 @@ def _variability_image(
 
     With ``relative_noise``, the variance of the corrected reflectance's noise is taken out.
     """
-    cosine = np.cos(aoi.astype(np.float64))
-    corrected = np.where(cosine > 0, reflectance / cosine, np.nan)
-    variance = None if relative_noise is None else (corrected * relative_noise) ** 2
+    cosine = aoi.astype(np.float64)
+    np.cos(cosine, out=cosine)
+    corrected = reflectance / cosine
+    np.copyto(corrected, np.nan, where=~(cosine > 0))
+    variance = None
+    if relative_noise is not None:
+        variance = np.multiply(corrected, relative_noise)
+        np.square(variance, out=variance)
     return _local_std_image(corrected, variance, **kwargs)
 
 
@@ -280,7 +298,7 @@ def image_filter(arr, kernel, radius: int, boundary, dtype, **kwargs) -> xr.Data
 def _as_float(arr: xr.DataArray, name: str) -> xr.DataArray:
     if not {"y", "x"} <= set(arr.dims):
         raise ValueError(f"{name} must have dims (..., y, x), got {arr.dims}")
-    return arr.astype(np.float64)
+    return arr.astype(np.float64, copy=False)
 
 
 def smooth(
@@ -445,7 +463,7 @@ def smooth_uncertainty(
             f"inflation must be positive (1: independent errors, inf: fully correlated), got {inflation!r}"
         )
     try:
-        da, uncertainty = xr.align(_as_float(da, "da"), _as_float(uncertainty, "uncertainty"), join="exact")
+        da, uncertainty = xr.align(_as_float(da, "da"), _as_float(uncertainty, "uncertainty"), join="exact", copy=False)
     except ValueError as exc:
         raise ValueError(f"smooth_uncertainty: da and uncertainty must be on one grid ({exc})") from exc
     out = image_filter(
@@ -465,6 +483,19 @@ def smooth_uncertainty(
         **({"inflation": float(inflation)} if math.isfinite(inflation) else {}),
     }
     return out
+
+
+def _median(values: np.ndarray) -> np.float64:
+    """``np.median`` of a non-empty 1-D array of finite values, to the bit; reorders ``values`` in place.
+
+    One selection of the upper middle value, the lower one being the largest below it:
+    ``np.median`` partitions for both and again for a NaN check, ten times slower.
+    """
+    half = values.size // 2
+    values.partition(half)
+    if values.size % 2:
+        return values[half]
+    return (values[:half].max() + values[half]) / 2
 
 
 def residual_correlation(
@@ -508,7 +539,7 @@ def residual_correlation(
     if missing:
         raise ValueError(f"residual_correlation: fit lacks {missing}; pass the Dataset of fit_scattering")
     try:
-        reflectance, aoi, fit = xr.align(reflectance, aoi, fit, join="exact")
+        reflectance, aoi, fit = xr.align(reflectance, aoi, fit, join="exact", copy=False)
     except ValueError as exc:
         raise ValueError(f"residual_correlation: the views and the fit must be on one grid ({exc})") from exc
     order = ("view", "y", "x")
@@ -517,32 +548,38 @@ def residual_correlation(
     image = fit[["R0", "n", "status", "n_views"]].transpose("y", "x").compute()
     usable = (image["status"].values == 0) & (image["n_views"].values > 2)
     with np.errstate(invalid="ignore"):
-        residual = r - scattering_model(theta, image["R0"].values[None], image["n"].values[None])
+        residual = scattering_model(theta, image["R0"].values[None], image["n"].values[None])
+        np.subtract(r, residual, out=residual)
     # circular autocorrelation by FFT; max_lag zeros of padding keep the wrap-around out of the lags kept
     shape = [scipy.fft.next_fast_len(length + max_lag, real=True) for length in residual.shape[1:]]
     lags = np.arange(-max_lag, max_lag + 1)
     index = np.ix_(lags % shape[0], lags % shape[1])
 
     def autocorrelation(images):
-        """Sum over ``images`` (image, y, x) of each image's autocorrelation at the lags kept."""
-        if not images:
+        """Sum over ``images`` (image, y, x), zero-padded to ``shape``, of their autocorrelations at the lags kept."""
+        if not len(images):
             return np.zeros((lags.size, lags.size))
-        spectrum = scipy.fft.rfft2(np.stack(images), shape)
+        spectrum = scipy.fft.rfft2(images)
         power = (spectrum.real * spectrum.real + spectrum.imag * spectrum.imag).sum(axis=0)
         return scipy.fft.irfft2(power, shape)[index]
 
-    kept, masks = [], []
+    # the kept residuals and their masks, written straight into the zero padding
+    kept, masks = np.zeros((2, len(residual), *shape))
+    height, width = residual.shape[1:]
+    count = 0
     for view in residual:
         ok = usable & np.isfinite(view)
         if not ok.any():
             continue
-        median = np.median(view[ok])
-        spread = 1.4826 * np.median(np.abs(view[ok] - median))
+        median = _median(view[ok])
+        deviation = view[ok] - median
+        spread = 1.4826 * _median(np.abs(deviation, out=deviation))
         ok &= np.abs(view - median) <= _RESIDUAL_CLIP * spread
-        kept.append(np.where(ok, view, 0.0))
-        masks.append(ok.astype(np.float64))
-    numerator = autocorrelation(kept)
-    pairs = np.round(autocorrelation(masks))
+        np.copyto(kept[count, :height, :width], view, where=ok)
+        masks[count, :height, :width] = ok
+        count += 1
+    numerator = autocorrelation(kept[:count])
+    pairs = np.round(autocorrelation(masks[:count]))
     centre = (max_lag, max_lag)
     covariance = np.full_like(numerator, np.nan)
     np.divide(numerator, pairs, out=covariance, where=pairs > 0)
@@ -643,7 +680,7 @@ def local_std(
     images = _as_float(da, "da")
     if noise_variance is not None:
         try:
-            images = list(xr.align(images, _as_float(noise_variance, "noise_variance"), join="exact"))
+            images = list(xr.align(images, _as_float(noise_variance, "noise_variance"), join="exact", copy=False))
         except ValueError as exc:
             raise ValueError(f"local_std: da and noise_variance must be on the same grid ({exc})") from exc
     out = image_filter(
@@ -726,7 +763,7 @@ def views_by_incidence(aoi: xr.DataArray, region: Roi | None = None) -> list:
     part = aoi if region is None else select_roi(aoi, region)
     values = part.transpose("view", "y", "x").values.reshape(part.sizes["view"], -1)
     finite = np.isfinite(values)
-    medians = np.array([np.median(row[ok]) if ok.any() else np.inf for row, ok in zip(values, finite)])
+    medians = np.array([_median(row[ok]) if ok.any() else np.inf for row, ok in zip(values, finite)])
     if not np.isfinite(medians).any():
         where = "anywhere" if region is None else f"in {region}"
         raise ValueError(f"no view has a finite angle of incidence {where}")
@@ -797,7 +834,7 @@ def variability(
     check_grid(aoi, "aoi")
     try:
         extra = [] if relative_noise is None else [relative_noise]
-        reflectance, aoi, *noise = xr.align(reflectance, aoi, *extra, join="exact")
+        reflectance, aoi, *noise = xr.align(reflectance, aoi, *extra, join="exact", copy=False)
     except ValueError as exc:
         raise ValueError(
             f"variability: reflectance, aoi and relative_noise must be on the same (y, x) grid ({exc})"
@@ -865,7 +902,7 @@ def features(
         raise ValueError(f"features: fit lacks {missing}; pass the Dataset of fit_scattering")
     check_grid(variability, "variability")
     try:
-        xr.align(fit, variability, join="exact")
+        xr.align(fit, variability, join="exact", copy=False)
     except ValueError as exc:
         raise ValueError(f"features: variability is not on the grid of the fit ({exc}); warp it first") from exc
     size, sigma, weights = _smoothing(size, sigma, min_weight)

@@ -71,10 +71,15 @@ def scattering_model(theta, r0, n):
 def _model_g(n, theta):
     """G = cos(a theta)^n, a = 2 - 1/n, zero where a theta >= pi/2 (no return)."""
     angle = (2.0 - 1.0 / n) * theta
-    t = np.tan(angle)
-    g = np.exp(-0.5 * n * np.log1p(t * t))
+    g = np.tan(angle, out=np.empty(np.shape(angle)))  # an array, for the in-place steps, even for scalars
+    np.multiply(g, g, out=g)
+    np.log1p(g, out=g)
+    np.multiply(-0.5 * n, g, out=g)
+    np.exp(g, out=g)
     lit = angle < 0.5 * np.pi
-    return g if lit.all() else g * lit
+    if not lit.all():
+        g *= lit
+    return g
 
 
 def _model_terms(n, theta, theta2=None):
@@ -155,7 +160,11 @@ def _solve_n(r, theta, w):
     # model returns nothing at the largest angle and F(n) is flat, a false minimum when the
     # data there are small.
     n_lit = _n_lit(theta.max(axis=0))  # theta is 0 where w is
-    cost = np.stack([_reduced_cost(value, r, theta, w) for value in _START_GRID])
+    # a start value that lights no view of the block is not tried (N_MAX never is, n_lit <= N_MAX):
+    # the grid increases, so those tried are its first rows
+    cost = np.full((_START_GRID.size, npix), np.inf)
+    for row, value in zip(cost, _START_GRID[_START_GRID < n_lit.max()]):
+        row[:] = _reduced_cost(value, r, theta, w)
     cost[_START_GRID[:, None] >= n_lit] = np.inf
     best = np.argmin(cost, axis=0)
     lo = np.where(best > 0, _START_GRID[np.maximum(best - 1, 0)], _N_MIN)
@@ -227,6 +236,16 @@ def _fit_pixels(r, theta, w, n_views):
     return result, conv, r0 > 0
 
 
+def _by_view(a) -> np.ndarray:
+    """Return a fresh C-contiguous (view, pixel) float64 copy of a (..., view) array.
+
+    One pass when the view axis is the slowest in memory, as in the (view, y, x) cubes
+    that :func:`fit_scattering` hands over as (y, x, view).
+    """
+    a = np.asarray(a)
+    return np.array(np.moveaxis(a, -1, 0).reshape(a.shape[-1], -1), dtype=np.float64, order="C")
+
+
 def fit_scattering_arrays(r, theta, *, min_views=2, min_spread=DEFAULT_MIN_SPREAD):
     """Fit R = R0 cos((2 - 1/n) theta)^n per pixel over the last axis.
 
@@ -249,14 +268,13 @@ def fit_scattering_arrays(r, theta, *, min_views=2, min_spread=DEFAULT_MIN_SPREA
         than 3 views), ``rms`` (residual), ``n_views`` (uint8), ``converged``
         (bool), ``status`` (uint8, see :data:`FIT_STATUS`).
     """
-    r = np.asarray(r, dtype=np.float64)
-    theta = np.asarray(theta, dtype=np.float64)
-    shape = r.shape[:-1]
-    r = r.reshape(-1, r.shape[-1]).T.copy()
-    theta = theta.reshape(-1, theta.shape[-1]).T.copy()
-    valid = np.isfinite(r) & np.isfinite(theta)
-    r[~valid] = 0.0
-    theta[~valid] = 0.0
+    shape = np.shape(r)[:-1]
+    r, theta = _by_view(r), _by_view(theta)
+    valid = np.isfinite(r)
+    valid &= np.isfinite(theta)
+    invalid = ~valid
+    np.copyto(r, 0.0, where=invalid)
+    np.copyto(theta, 0.0, where=invalid)
     w = valid.astype(np.float64)
     n_views = valid.sum(axis=0)
     with np.errstate(invalid="ignore"):

@@ -144,6 +144,67 @@ def registration_stage(
     return _single(registered)
 
 
+def _first_variability(
+    reflectance: xr.Dataset, aoi: xr.Dataset, maps: xr.Dataset, order: list, *, size: int
+) -> tuple[xr.DataArray, xr.DataArray]:
+    """Return each reference pixel's variability from the first view of ``order`` that has one, and that view.
+
+    What :func:`~surffin.method.features.first_available` of all the views' warped
+    :func:`~surffin.method.features.variability` gives, with less work: the views after the
+    first are warped only onto the pixels that the first leaves without a value (a few
+    percent). The warp of a pixel does not depend on the others', so the values are the
+    same to the bit.
+
+    Parameters
+    ----------
+    reflectance, aoi : Dataset
+        The reflectance store (``reflectance``, optional ``reflectance_noise``) and the AOI
+        store (``aoi``) of the item, (view, y, x) on the views' own grids.
+    maps : Dataset
+        ``map_x``, ``map_y`` (view, y, x) onto the reference grid.
+    order : list
+        The views, the first choice first (:func:`~surffin.method.features.views_by_incidence`).
+    size : int
+        Window side of the variability, pixels.
+
+    Returns
+    -------
+    values : (y, x) DataArray of float64
+        On the maps' grid, with the attrs of the first view's variability; NaN where no view has one.
+    source : (y, x) DataArray of int16
+        Position in ``order`` of the view each value comes from, -1 where none.
+    """
+    noise = reflectance.get("reflectance_noise")
+    own = xr.concat(
+        [
+            variability(
+                reflectance["reflectance"].sel(view=v),
+                aoi["aoi"].sel(view=v),
+                size=size,
+                relative_noise=None if noise is None else noise.sel(view=v),
+            )
+            for v in order
+        ],
+        dim=xr.DataArray(order, dims="view", name="view"),
+    )
+    maps = maps.sel(view=order).transpose("view", "y", "x")
+    first = warp(own[:1], maps.isel(view=[0])).isel(view=0, drop=True).compute()
+    values = first.values.flatten()
+    source = np.where(np.isfinite(values), np.int16(0), np.int16(-1))
+    missing = np.flatnonzero(source < 0)
+    if missing.size and len(order) > 1:
+        # the missing pixels as one row of a grid of their own: warp samples each at its map position
+        later = maps.isel(view=slice(1, None))
+        flat = {name: later[name].values.reshape(len(order) - 1, 1, -1) for name in maps}
+        row = xr.Dataset({name: (later[name].dims, a[..., missing]) for name, a in flat.items()}, later["view"].coords)
+        filled, position = first_available(warp(own[1:], row))
+        position = position.values.ravel()
+        values[missing] = filled.values.ravel()
+        source[missing] = np.where(position < 0, position, position + 1)
+    shape = first.shape
+    return first.copy(data=values.reshape(shape)), xr.DataArray(source.reshape(shape), first.coords, first.dims)
+
+
 def features_stage(
     registered: xr.Dataset,
     reflectance: xr.Dataset,
@@ -175,20 +236,7 @@ def features_stage(
     fit = fit_scattering(observed["reflectance"], observed["aoi"], min_views=min_views, min_spread=min_spread).persist()
     correlation = residual_correlation(registered["reflectance"], registered["aoi"], fit, max_lag=size - 1)
     order = views_by_incidence(aoi["aoi"], Roi.from_mapping(roi))
-    noise = reflectance.get("reflectance_noise")
-    own = xr.concat(
-        [
-            variability(
-                reflectance["reflectance"].sel(view=v),
-                aoi["aoi"].sel(view=v),
-                size=variability_size,
-                relative_noise=None if noise is None else noise.sel(view=v),
-            )
-            for v in order
-        ],
-        dim=xr.DataArray(order, dims="view", name="view"),
-    )
-    warped, source = first_available(warp(own, registered[["map_x", "map_y"]].sel(view=order)))
+    warped, source = _first_variability(reflectance, aoi, registered[["map_x", "map_y"]], order, size=variability_size)
     ds = features(fit, warped, size=size, error_correlation=correlation)
     ds["variability_view"] = source.assign_attrs(
         units="1", long_name="view the variability comes from: position in variability_views, -1 none"
@@ -197,7 +245,7 @@ def features_stage(
         **ds.attrs,
         **registered.attrs,
         "variability_views": [str(v) for v in order],
-        NOISE_CORRECTED: int(noise is not None),
+        NOISE_CORRECTED: int("reflectance_noise" in reflectance),
     }
     return _single(ds)
 
