@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import xarray as xr
 from scipy import ndimage
+from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from surffin.errors import RegistrationError
@@ -217,6 +218,62 @@ def test_stepped_surface_needs_poses(stepped):
 def block_top(ingest):
     """Reference pixels on the block's top: 0.40 m from the reference camera, the board 0.43 m."""
     return ingest["xyz"].sel(view="v00", axis="z").values < 0.415
+
+
+def smoothed_points(points, window, tolerance, relative):
+    """The reference points with their range averaged over the window's neighbours on their surface (by brute force)."""
+    x, y, z = (points[..., axis] for axis in range(3))
+    distance = np.sqrt(x * x + y * y + z * z)
+    height, width = distance.shape
+    padded = np.pad(distance, window // 2, constant_values=np.nan)
+    gap = np.maximum(tolerance, relative * distance)
+    total, count = np.zeros_like(distance), np.zeros_like(distance)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for dy in range(window):
+            for dx in range(window):
+                neighbour = padded[dy : dy + height, dx : dx + width]
+                near = np.abs(neighbour - distance) <= gap
+                total = np.where(near, total + neighbour, total)
+                count += near
+        return points * (total / count / distance)[..., None]
+
+
+def test_poses_map_the_range_averaged_over_the_surface_exactly():
+    # a 2 cm step, holes and range noise on a grid of several bands, and a view 5 cm aside that sees nothing
+    # nearer (no occlusion): its map is the projection of the averaged reference points
+    camera = PinholeCamera(width=440, height=120, fx=300.0, fy=310.0)
+    crop = Roi((10, 100), (20, 420))
+    rng = np.random.default_rng(7)
+    rows, cols = np.mgrid[0 : camera.height, 0 : camera.width]
+    rays = np.stack([(cols - camera.cx) / camera.fx, (rows - camera.cy) / camera.fy, np.ones(rows.shape)], axis=-1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    distance = 0.5 - 0.02 * ((cols > 150) & (cols < 260) & (rows > 40)) + rng.normal(0.0, 0.0009, rows.shape)
+    distance[rng.random(rows.shape) < 0.01] = np.nan
+    distance[60:66, 300:305] = np.nan
+    xyz = rays * distance[..., None]
+    valid = np.isfinite(distance)
+    intensity = np.where(valid, 500.0 + 50.0 * rng.random(rows.shape), 0.0).astype(np.float32)
+    aside = np.eye(4)
+    aside[0, 3] = 0.05
+    views = [
+        View(Path("v00.npz"), xyz, intensity, valid, np.eye(4)),
+        View(Path("v01.npz"), 10 * rays, intensity, valid, aside),
+    ]
+    ingest = build_cube(views, crop)
+    intrinsics = {**camera.intrinsics(), "distortion": [0.001, 0.0, 0.0, 0.0]}
+    ingest.attrs = {"item": "step", "reference_view": "v00", "camera": {"intrinsics": intrinsics}}
+    points = ingest["xyz"].values[0].astype(np.float64)
+    for window in (9, 5):
+        maps = registration_maps(ingest, method="poses", refine=False, smooth=window).sel(view="v01")
+        transform = np.linalg.solve(aside, np.eye(4))
+        local = smoothed_points(points, window, 0.005, 0.01) @ transform[:3, :3].T + transform[:3, 3]
+        col, row = CameraModel.from_intrinsics(intrinsics).project(local)
+        mapped = np.isfinite(maps["map_x"].values)
+        assert mapped.mean() > 0.8 and np.isfinite(col[mapped]).all()
+        np.testing.assert_array_equal(maps["map_x"].values[mapped], col[mapped].astype(np.float32))
+        np.testing.assert_array_equal(maps["map_y"].values[mapped], row[mapped].astype(np.float32))
+    raw = registration_maps(ingest, method="poses", refine=False, smooth=1).sel(view="v01")
+    assert np.nanmax(np.abs(raw["map_x"] - maps["map_x"])) > 0.01  # the averaging moved the points
 
 
 def test_poses_options_and_errors(planar):
@@ -557,6 +614,31 @@ def test_camera_model_fitted_to_an_organized_cloud():
         fit_camera_model(np.full((1, 4, 5, 3), np.nan), np.arange(5), np.arange(4))
 
 
+def test_fitted_camera_model_is_least_squares_on_the_pixels_and_reports_its_residual():
+    distortion = (-0.2, 0.08, 0.001, -0.002, -0.01)
+    pose = look_at_pose((0.0, 0.0, 0.0), 0.5, np.deg2rad(15), 0.3)
+    crop = Roi((60, 420), (60, 580))
+    xyz, _ = lens_cloud(pose, distortion, camera=PinholeCamera(640, 480, 565.0, 579.0), crop=crop)
+    xyz += np.random.default_rng(5).normal(0.0, 2e-4, xyz.shape)  # the pixels no longer fit exactly
+    columns, rows = np.arange(*crop.x), np.arange(*crop.y)
+    camera, residual = fit_camera_model(xyz[None], columns, rows)
+    assert residual == model_residual(camera, xyz[None], columns, rows)
+    # the same fit written out: its subsample of the pixels, a pinhole start and scipy's least squares
+    stride = round(np.sqrt(xyz[..., 0].size / 20000))
+    points = xyz[::stride, ::stride].reshape(-1, 3)
+    sensor = np.stack(np.meshgrid(columns[::stride], rows[::stride]), axis=-1).reshape(-1, 2).astype(float)
+    normalised = points[:, :2] / points[:, 2:]
+    start = [np.linalg.lstsq(np.stack([normalised[:, k], np.ones(len(points))], -1), sensor[:, k])[0] for k in (0, 1)]
+
+    def residuals(parameters):
+        col, row = CameraModel(*parameters[:4], tuple(parameters[4:])).project(points)
+        return np.concatenate([col - sensor[:, 0], row - sensor[:, 1]])
+
+    initial = np.array([start[0][0], start[1][0], start[0][1], start[1][1], *np.zeros(5)])
+    fit = least_squares(residuals, initial, x_scale="jac", method="lm")
+    assert camera == CameraModel(*(float(value) for value in fit.x[:4]), tuple(float(value) for value in fit.x[4:]))
+
+
 # poses estimated from the clouds ---------------------------------------------------------------
 
 
@@ -765,6 +847,32 @@ def test_warp_nan_never_bleeds_and_nothing_is_extrapolated():
     np.testing.assert_array_equal(np.isnan(masked), list(points.values()))
 
 
+def test_warp_on_grids_of_several_bands_whole_pixels_and_fractions():
+    # 90 x 400 positions: bands of rows whose positions are all whole pixels (view v00, the first rows of v01),
+    # all fractional (v02) or both (the rest of v01); whole pixels as in a fractional band give the pixel itself
+    rng = np.random.default_rng(6)
+    y0, x0, h, w = 7, 9, 50, 400
+    image = rng.normal(size=(3, h, w))
+    image[:, 10, 20] = np.nan
+    image[:, h - 1, w - 1] = -2.5
+    data = cube(image, y0, x0)
+    whole = np.ones((3, 90, 400), bool)
+    whole[1, 45:], whole[2] = False, rng.random((90, 400)) < 0.1
+    whole[..., :4] = True
+    rows = np.where(whole, rng.integers(0, h, whole.shape), rng.uniform(0, h - 1, whole.shape))
+    cols = np.where(whole, rng.integers(0, w, whole.shape), rng.uniform(0, w - 1, whole.shape))
+    rows[..., :4], cols[..., :4] = [h - 1, 10, 10, 11], [w - 1, 20, 21, 20]  # the last pixel, the NaN, beside it
+    out = warp(data, maps_of(cols + x0, rows + y0, np.arange(90), np.arange(400), ["v00", "v01", "v02"])).values
+    at = image[np.arange(3)[:, None, None], rows.astype(int), cols.astype(int)]
+    np.testing.assert_array_equal(out[whole], at[whole])
+    for view in range(3):
+        reference = ndimage.map_coordinates(image[view], [rows[view], cols[view]], order=1)
+        known = np.isfinite(reference)  # scipy's NaN spreads to the neighbours it has no weight on
+        np.testing.assert_allclose(out[view][known], reference[known], rtol=0, atol=1e-12)
+    # a NaN neighbour with no weight leaves a whole pixel as it is; the missing pixel itself stays missing
+    assert np.isnan(out[:, :, 1]).all() and np.isfinite(out[:, :, [0, 2, 3]]).all()
+
+
 def test_warp_is_lazy_on_dask_and_agrees_with_numpy():
     rng = np.random.default_rng(3)
     data = cube(rng.normal(size=(3, 25, 31)).astype(np.float32), 5, 6)
@@ -794,3 +902,131 @@ def test_register_warps_reflectance_and_aoi(planar):
     xr.testing.assert_equal(out["reflectance"].sel(view="v00"), ds["reflectance"].sel(view="v00"))
     np.testing.assert_array_equal(out["valid"], np.isfinite(out["reflectance"]) & np.isfinite(out["aoi"]))
     assert 0.5 < float(out["valid"].sel(view="v02").mean()) < 1.0
+
+
+# --- refusals of items without poses, each naming the item and, where one is to blame, the view --------------
+# The stores a registration reads hold no file names: an item and its view stems are what the user finds the files
+# by. The cubes are built by hand (a plane seen straight on, a few thousand pixels): each error in well under 1 s.
+
+HEIGHT, WIDTH = 40, 50
+PITCH = 0.004  # metres between neighbouring points at 0.5 m: f = 125 px
+INTRINSICS = {"fx": 125.0, "fy": 125.0, "cx": 25.0, "cy": 20.0, "distortion": [0.0, 0.0, 0.0, 0.0]}
+
+
+def plane() -> np.ndarray:
+    """xyz (HEIGHT, WIDTH, 3) metres of a plane 0.5 m in front of a pinhole camera, seen straight on."""
+    rows, cols = np.mgrid[0:HEIGHT, 0:WIDTH]
+    return np.stack([(cols - 25) * PITCH, (rows - 20) * PITCH, np.full(rows.shape, 0.5)], axis=-1)
+
+
+def kept(xyz: np.ndarray, count: int) -> np.ndarray:
+    """``xyz`` with only its first ``count`` pixels (row-major) valid."""
+    xyz = xyz.copy()
+    xyz.reshape(-1, 3)[count:] = np.nan
+    return xyz
+
+
+def item(name: str, clouds: dict[str, np.ndarray], intrinsics: dict | None = None, poses=None, intensity=None):
+    """An ingest cube named ``name``, its views the keys of ``clouds``; without poses and texture unless given."""
+    height, width = next(iter(clouds.values())).shape[:2]
+    intensity = np.full((height, width), 700.0, np.float32) if intensity is None else intensity
+    poses = poses or [None] * len(clouds)
+    views = [
+        View(Path(f"{stem}.npz"), xyz, intensity, np.isfinite(xyz).all(axis=-1), pose)
+        for (stem, xyz), pose in zip(clouds.items(), poses)
+    ]
+    cube = build_cube(views, Roi((0, height), (0, width)))
+    return cube.assign_attrs(item=name, camera={"intrinsics": intrinsics})
+
+
+def test_no_camera_model_from_too_few_valid_pixels_names_the_item():
+    cube = item("sparse", {"v00": kept(plane(), 10), "v01": kept(plane(), 10)})
+    with pytest.raises(RegistrationError, match=r"^item 'sparse': no camera model: only 20 valid pixels: too few"):
+        registration_maps(cube, method="clouds")
+
+
+@pytest.mark.parametrize(
+    ("noise", "misses"),
+    [
+        # 5 mm of lateral noise on one view's points at 0.5 m: ~1 px off any camera model (at most 0.5 px allowed)
+        (0.005, r"misses their pixels by [\d.]+ px rms"),
+        # 1 cm: the fitted lens model folds back before some points (its residual is NaN, never "nan px")
+        (0.01, r"projects some nowhere"),
+    ],
+)
+def test_a_camera_model_that_misses_the_pixels_names_the_item(noise, misses):
+    noisy = plane()
+    noisy[..., :2] += np.random.default_rng(0).normal(0.0, noise, (HEIGHT, WIDTH, 2))
+    cube = item("blurred", {"v00": noisy, "v01": plane()})
+    with pytest.raises(
+        RegistrationError,
+        match=rf"^item 'blurred': the camera model fitted to the views' clouds {misses} \(at most 0\.5 px rms\): "
+        r"give camera\.intrinsics with their distortion in campaign\.yaml",
+    ):
+        registration_maps(cube, method="clouds")
+
+
+def test_a_view_with_too_few_points_for_the_clouds_is_named():
+    cube = item("S7", {"v00": plane(), "v01": plane(), "v02": kept(plane(), 30)}, INTRINSICS)
+    with pytest.raises(
+        RegistrationError,
+        match=r"^item 'S7', view 'v02': 30 valid points, too few to estimate the pose from the clouds",
+    ):
+        registration_maps(cube, method="clouds")
+
+
+RELIEF_CAMERA = {**INTRINSICS, "fx": 250.0, "fy": 250.0, "cx": 50.0, "cy": 40.0}
+"""The intrinsics of :func:`relief`'s 100 x 80 px camera."""
+
+
+def relief(height_of) -> np.ndarray:
+    """xyz (80, 100, 3) metres of the surface z = 0.5 m + ``height_of(x, y)`` seen straight on."""
+    rows, cols = np.mgrid[0:80, 0:100]
+    u, v = (cols - 50) / 250.0, (rows - 40) / 250.0  # the rays' x/z, y/z
+    z = np.full(u.shape, 0.5)
+    for _ in range(30):  # each ray's hit, by fixed-point iteration (the slopes are well below 1)
+        z = 0.5 + height_of(u * z, v * z)
+    return np.stack([u * z, v * z, z], axis=-1)
+
+
+def test_a_view_whose_recorded_pose_puts_it_off_the_reference_surface_is_named():
+    """Its recorded pose 3 cm off along the optical axis: no point within the 5 mm tolerance of the reference."""
+    bumps = relief(lambda x, y: 0.01 * np.sin(2 * np.pi * x / 0.05) * np.sin(2 * np.pi * y / 0.04))
+    off = np.eye(4)
+    off[2, 3] = 0.03
+    rows, cols = np.mgrid[0:80, 0:100]
+    texture = (500 + 200 * np.sin(0.7 * cols) * np.cos(0.5 * rows)).astype(np.float32)
+    cube = item("S3", {"v00": bumps, "v01": bumps}, RELIEF_CAMERA, [np.eye(4), off], texture)
+    with pytest.raises(
+        RegistrationError,
+        match=r"^item 'S3', view 'v01': only \d+ of the view's points lie on the reference surface .*too few to "
+        r"refine its pose; check the pose, or map with the recorded poses \(refine=False\)",
+    ):
+        registration_maps(cube, method="poses", max_translation=1.0)
+    registration_maps(cube, method="poses", refine=False)  # the recorded poses, as asked
+
+
+def test_a_ridged_item_without_texture_names_the_view_its_clouds_cannot_place():
+    """A surface corrugated across x alone, without texture: nothing fixes a view's shift along the ridges."""
+    ridges = relief(lambda x, y: 0.01 * np.sin(2 * np.pi * x / 0.05))
+    cube = item("ridges", {"v00": ridges, "v01": ridges}, RELIEF_CAMERA)
+    with pytest.raises(
+        RegistrationError,
+        match=r"^item 'ridges', view 'v01': the clouds fix only 5 of the 6 directions of the view's pose .*"
+        r"give the views poses \(method='poses'\) or use method='homography'",
+    ):
+        registration_maps(cube, method="clouds")
+
+
+def test_a_flat_item_without_poses_names_the_view_and_both_failures():
+    """Without relief the clouds cannot fix a pose, and a uniform plane has no texture for a homography."""
+    cube = item("flat", {"v00": plane(), "v01": plane()}, INTRINSICS)
+    with pytest.raises(RegistrationError) as raised:
+        registration_maps(cube)
+    message = str(raised.value)
+    assert message.startswith("item 'flat' has no poses, and neither registration without them worked: ")
+    clouds, homography = message.split("; by homography, ")
+    assert "from the clouds, item 'flat', view 'v01': only 0.0 % of a view's points lie off its dominant plane" in (
+        clouds
+    )
+    assert homography.startswith("item 'flat', view 'v01' (reference view 'v00'): only 0 keypoint matches")

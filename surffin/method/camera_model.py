@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -67,7 +67,12 @@ class CameraModel:
 
     def coefficients(self) -> np.ndarray:
         """Return the distortion coefficients padded with zeros to all eight terms (8,)."""
-        return np.pad(np.asarray(self.distortion, dtype=np.float64), (0, _TERMS - len(self.distortion)))
+        return np.array(self._terms)
+
+    @cached_property
+    def _terms(self) -> tuple[np.float64, ...]:
+        """The eight coefficients of :meth:`coefficients`, padded once per model (projections use them often)."""
+        return tuple(np.pad(np.asarray(self.distortion, dtype=np.float64), (0, _TERMS - len(self.distortion))))
 
     def fold(self) -> float:
         """Return the largest ``r2 = (x / z)^2 + (y / z)^2`` up to which the radial distortion grows with r.
@@ -77,7 +82,7 @@ class CameraModel:
         nowhere. ``inf`` without distortion or when no fold is found up to
         ``r2 = 4`` (63 deg off the axis).
         """
-        return _fold(tuple(self.coefficients()))
+        return _fold(self._terms)
 
     def project(self, points: np.ndarray, origin: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, np.ndarray]:
         """Return the column and row where camera-frame points are seen.
@@ -104,41 +109,43 @@ class CameraModel:
     def jacobian(self, points: np.ndarray) -> np.ndarray:
         """Return the derivative of (column, row) with respect to the point, (..., 2, 3); NaN where not projected."""
         a, b, usable = self._normalised(points)
-        k1, k2, p1, p2, k3, k4, k5, k6 = self.coefficients()
+        k1, k2, p1, p2, k3, k4, k5, k6 = self._terms
         r2 = a * a + b * b
         radial = _radial(r2, k1, k2, k3, k4, k5, k6)
         slope = _radial_slope(r2, k1, k2, k3, k4, k5, k6) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6))) ** 2
-        da = np.stack(
-            [radial + 2 * a * a * slope + 2 * p1 * b + 6 * p2 * a, 2 * a * b * slope + 2 * p1 * a + 2 * p2 * b]
-        )
-        db = np.stack(
-            [2 * a * b * slope + 2 * p1 * a + 2 * p2 * b, radial + 2 * b * b * slope + 6 * p1 * b + 2 * p2 * a]
-        )
-        scale = np.array([self.fx, self.fy]).reshape(2, *(1,) * a.ndim)
-        da, db = da * scale, db * scale
+        # the derivatives of the distorted coordinates by a and b (d xd / db = d yd / da), scaled to pixels
+        mixed = 2 * a * b * slope + 2 * p1 * a + 2 * p2 * b
+        fx, fy = np.float64(self.fx), np.float64(self.fy)  # float64 whatever the points' type
+        by_a = ((radial + 2 * a * a * slope + 2 * p1 * b + 6 * p2 * a) * fx, mixed * fy)
+        by_b = (mixed * fx, (radial + 2 * b * b * slope + 6 * p1 * b + 2 * p2 * a) * fy)
         with np.errstate(divide="ignore", invalid="ignore"):
             inverse = np.where(usable, 1.0 / points[..., 2], np.nan)
         # a = x / z, b = y / z: da/dpoint = (1, 0, -a) / z, db/dpoint = (0, 1, -b) / z
-        out = np.stack([da * inverse, db * inverse, -(da * a + db * b) * inverse], axis=-1)
-        return np.moveaxis(out, 0, -2)
+        out = np.empty((*a.shape, 2, 3))
+        for axis, (da, db) in enumerate(zip(by_a, by_b)):
+            np.multiply(da, inverse, out=out[..., axis, 0])
+            np.multiply(db, inverse, out=out[..., axis, 1])
+            np.multiply(-(da * a + db * b), inverse, out=out[..., axis, 2])
+        return out
 
     def _normalised(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Return ``x / z``, ``y / z`` (0 where unusable) and where the projection is defined."""
         depth = points[..., 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
+        fold = self.fold() if self.distortion else np.inf
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             usable = depth > 0
-            a = np.where(usable, points[..., 0] / depth, 0.0)
-            b = np.where(usable, points[..., 1] / depth, 0.0)
-            if self.distortion:
-                usable &= a * a + b * b <= self.fold()
-        usable &= np.isfinite(a) & np.isfinite(b)
+            a, b = points[..., 0] / depth, points[..., 1] / depth
+            if fold < np.inf:
+                usable &= a * a + b * b <= fold  # so a and b are finite
+            else:
+                usable &= np.isfinite(a) & np.isfinite(b)
         return np.where(usable, a, 0.0), np.where(usable, b, 0.0), usable
 
     def _distorted(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return the distorted normalised coordinates of undistorted ones."""
         if not self.distortion:
             return a, b
-        k1, k2, p1, p2, k3, k4, k5, k6 = self.coefficients()
+        k1, k2, p1, p2, k3, k4, k5, k6 = self._terms
         r2 = a * a + b * b
         radial = _radial(r2, k1, k2, k3, k4, k5, k6)
         return (
@@ -201,7 +208,11 @@ def model_residual(model: CameraModel, xyz: np.ndarray, columns: np.ndarray, row
     float
         Over a regular subsample of about 20000 valid pixels; NaN when none.
     """
-    points, sensor = _pairs(xyz, columns, rows)
+    return _residual(model, *_pairs(xyz, columns, rows))
+
+
+def _residual(model: CameraModel, points: np.ndarray, sensor: np.ndarray) -> float:
+    """Return :func:`model_residual` of the pairs of :func:`_pairs`."""
     col, row = model.project(points)
     return float(np.sqrt(np.mean((col - sensor[:, 0]) ** 2 + (row - sensor[:, 1]) ** 2))) if len(points) else np.nan
 
@@ -247,13 +258,20 @@ def fit_camera_model(xyz: np.ndarray, columns: np.ndarray, rows: np.ndarray) -> 
     def model_of(parameters: np.ndarray) -> CameraModel:
         return CameraModel(*(float(value) for value in parameters[:4]), tuple(float(value) for value in parameters[4:]))
 
+    distorted = {}  # the distorted coordinates of the last distortion coefficients tried
+
     def residuals(parameters: np.ndarray) -> np.ndarray:
-        # unguarded by the fold: a trial model may fold inside the data
-        xd, yd = model_of(parameters)._distorted(*normalised.T)
+        # the finite differences' steps in fx, fy, cx and cy leave the distorted coordinates as they are
+        key = parameters[4:].tobytes()
+        if key not in distorted:
+            distorted.clear()
+            # unguarded by the fold: a trial model may fold inside the data
+            distorted[key] = model_of(parameters)._distorted(*normalised.T)
+        xd, yd = distorted[key]
         return np.concatenate(
             [parameters[0] * xd + parameters[2] - sensor[:, 0], parameters[1] * yd + parameters[3] - sensor[:, 1]]
         )
 
     fit = least_squares(residuals, np.array([fx, fy, cx, cy, *np.zeros(_FITTED)]), x_scale="jac", method="lm")
     model = model_of(fit.x)
-    return model, model_residual(model, xyz, columns, rows)
+    return model, _residual(model, points, sensor)

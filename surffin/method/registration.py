@@ -30,7 +30,6 @@ scores maps against the synthetic camera's truth. The methods:
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from functools import cache, partial
 
@@ -129,6 +128,7 @@ _HUBER = 1.345  # Huber threshold, robust standard deviations
 _MAD_SCALE = 1.4826  # median absolute deviation to standard deviation (normal distribution)
 _REMAP_ROW = 1024  # positions per row of the maps given to cv2.remap
 _SMOOTH_ROWS = 64  # rows per band of the range smoothing
+_BAND = 16384  # pixels per band of the full-frame kernels (bilinear, maps): their buffers stay in the cache
 _FEATURE_MARGIN = 4  # pixels: no keypoint this close to an invalid pixel or the border
 _CLIP = 3.0  # local standard deviations mapped to the ends of the 8-bit range
 _RIGID_TOLERANCE = 1e-4  # |R^T R - I| of a pose (poses written with ~5 digits pass; 1e-4 rad ~ 0.05 mm at 0.5 m)
@@ -163,48 +163,63 @@ def _bilinear(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray
         where a neighbour with a non-zero weight is NaN (a missing pixel never
         bleeds into its neighbours, and nothing is extrapolated).
     """
-    channels, height, width = image.shape[-3:]
+    lead = np.broadcast_shapes(image.shape[:-3], col.shape[:-2], row.shape[:-2])
+    image = np.broadcast_to(image, (*lead, *image.shape[-3:]))
+    col, row = (np.broadcast_to(value, (*lead, *value.shape[-2:])) for value in (col, row))
+    total = np.empty((*lead, image.shape[-3], *col.shape[-2:]))
+    # in bands of rows of one image at a time, whose buffers stay in the cache
+    rows = max(1, _BAND // col.shape[-1])
+    for index in np.ndindex(lead):
+        flat = np.ascontiguousarray(image[index]).reshape(image.shape[-3], -1)
+        for top in range(0, col.shape[-2], rows):
+            band = slice(top, top + rows)
+            total[(*index, slice(None), band)] = _bilinear_band(
+                flat, image.shape[-2:], col[index][band], row[index][band]
+            )
+    return total
+
+
+def _bilinear_band(flat: np.ndarray, size: tuple[int, int], col: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """:func:`_bilinear` of one image ``flat`` (C, H * W) of ``size`` (H, W) at positions (h, w); (C, h, w)."""
+    height, width = size
     with np.errstate(invalid="ignore"):
         inside = (col >= 0) & (col <= width - 1) & (row >= 0) & (row <= height - 1)
     # in float64 whatever the positions' type: the weights are products of the fractions
     fc, fr = (np.where(inside, value, 0.0).astype(np.float64, copy=False) for value in (col, row))
     # c0, r0: the top left neighbour, as floats (exact integers)
     c0, r0 = np.floor(fc), np.floor(fr)
+    total = np.empty((len(flat), *col.shape))
+    if np.array_equal(c0, fc) and np.array_equal(r0, fr):
+        # whole pixels (the reference view's own map): a weight of 1 on one neighbour and 0 on the others gives its
+        # value + 0.0 (an unweighted missing neighbour is left out, and the sum starts from +0.0)
+        at = (r0 * width + c0).astype(np.intp)
+        for channel, values in enumerate(flat):
+            np.add(np.take(values, at), 0.0, out=total[channel])
+        np.copyto(total, np.nan, where=~inside)
+        return total
     np.minimum(c0, width - 2, out=c0)
     np.minimum(r0, height - 2, out=r0)
-    lead = np.broadcast_shapes(image.shape[:-3], col.shape[:-2])
-    shape = (*lead, *col.shape[-2:])
-    # the images laid end to end: one flat index per sample, of its top left neighbour in the first channel
-    flat = np.broadcast_to(image, (*lead, channels, height, width)).ravel()
-    size = height * width
-    base = (r0 * width + c0).astype(np.intp) + channels * size * np.arange(math.prod(lead)).reshape(*lead, 1, 1)
+    base = (r0 * width + c0).astype(np.intp)
     fc -= c0
     fr -= r0
     gc, gr = 1.0 - fc, 1.0 - fr
-    terms = [
-        (offset, np.broadcast_to(weight, shape))
-        for offset, weight in ((0, gr * gc), (1, gr * fc), (width, fr * gc), (width + 1, fr * fc))
-    ]
-    total, values = np.zeros((*lead, channels, *col.shape[-2:])), np.empty(shape)
-    for channel in range(channels):
+    terms = [(0, gr * gc), (1, gr * fc), (width, fr * gc), (width + 1, fr * fc)]
+    total[...], values = 0.0, np.empty(col.shape)
+    for channel in range(len(flat)):
         for offset, weight in terms:
             # the indices are in range; mode="raise" would buffer the output (~3x slower)
-            np.take(flat[channel * size + offset :], base, out=values, mode="clip")
-            total[..., channel, :, :] += np.multiply(values, weight, out=values)
+            np.take(flat[channel, offset:], base, out=values, mode="clip")
+            total[channel] += np.multiply(values, weight, out=values)
     # a NaN neighbour made its sample NaN even with a zero weight: sum those again without it
-    inside = np.broadcast_to(inside, shape)[..., None, :, :]
     with np.errstate(invalid="ignore"):
         again = np.flatnonzero(np.isnan(total) & inside)
-    pixels = col.shape[-2] * col.shape[-1]
-    rest, pixel = np.divmod(again, pixels)
-    sample, channel = np.divmod(rest, channels)
-    sample = sample * pixels + pixel
-    at = base.flat[sample] + channel * size
+    channel, pixel = np.divmod(again, inside.size)
+    at = base.ravel()[pixel] + channel * flat.shape[1]
     redone = np.zeros(again.size)
     for offset, weight in terms:
-        weight = weight.flat[sample]
-        redone += np.where(weight > 0, flat[at + offset] * weight, 0.0)
-    total.flat[again] = redone
+        weight = weight.ravel()[pixel]
+        redone += np.where(weight > 0, flat.ravel()[at + offset] * weight, 0.0)
+    total.ravel()[again] = redone
     np.copyto(total, np.nan, where=~inside)
     return total
 
@@ -216,10 +231,13 @@ def _warp_kernel(*arrays: np.ndarray, origin: tuple[int, int], count: int) -> np
     (row, col), the maps' columns and rows (..., h, w), and optionally a valid
     mask (..., H, W) of the images. Returns (..., count, h, w) of float64.
     """
-    images = np.stack([np.asarray(image, dtype=np.float64) for image in arrays[:count]], axis=-3)
+    shape = np.broadcast_shapes(*(np.shape(image) for image in arrays[:count]))
+    images = np.empty((*shape[:-2], count, *shape[-2:]))
+    for layer, image in enumerate(arrays[:count]):
+        images[..., layer, :, :] = image
     map_x, map_y, *valid = arrays[count:]
     if valid:
-        images = np.where(valid[0][..., None, :, :], images, np.nan)
+        np.copyto(images, np.nan, where=~np.asarray(valid[0], dtype=bool)[..., None, :, :])
     return _bilinear(images, map_x - origin[1], map_y - origin[0])
 
 
@@ -253,23 +271,47 @@ def _smooth_range(points: np.ndarray, window: int, tolerance: float, relative: f
     if window == 1:
         return points
     height, width = points.shape[:2]
+    half = window // 2
     distance = _norm(points)
-    padded = np.pad(distance, window // 2, constant_values=np.nan)
+    padded = np.pad(distance, half, constant_values=np.nan)
     gap = np.maximum(tolerance, relative * distance)
-    total = np.zeros_like(distance)
-    count = np.zeros(distance.shape, np.min_scalar_type(window * window))
-    # in bands of rows whose buffers stay in the cache across the window's offsets
+    # Most pixels have every valid neighbour on their surface (the extremes of the window's valid ranges within the
+    # gap: |n - r| rounds monotonically in n, so they decide it exactly). Their sum adds every neighbour, an invalid
+    # one as 0.0 (which leaves a sum of ranges as it is): plain sums over the frame, in the same order as the
+    # masked sums of the other pixels, which run on those pixels only.
+    kernel = np.ones((window, window), np.uint8)
+    centre = (slice(half, half + height), slice(half, half + width))
+    known = np.isfinite(padded)
     with np.errstate(invalid="ignore"):
-        for top in range(0, height, _SMOOTH_ROWS):
-            rows = slice(top, min(top + _SMOOTH_ROWS, height))
-            apart = np.empty_like(distance[rows])
-            near = np.empty(apart.shape, bool)
-            for dy in range(window):
-                for dx in range(window):
-                    neighbour = padded[rows.start + dy : rows.stop + dy, dx : dx + width]
-                    np.abs(np.subtract(neighbour, distance[rows], out=apart), out=apart)
-                    np.add(total[rows], neighbour, out=total[rows], where=np.less_equal(apart, gap[rows], out=near))
-                    count[rows] += near
+        whole = cv2.dilate(np.where(known, padded, -np.inf), kernel)[centre] - distance <= gap
+        whole &= distance - cv2.erode(np.where(known, padded, np.inf), kernel)[centre] <= gap
+    ranges = np.where(known, padded, 0.0)
+    count = cv2.boxFilter(known.view(np.uint8), cv2.CV_32S, (window, window), normalize=False)[centre]
+    count = count.astype(np.min_scalar_type(window * window))
+    total = np.zeros_like(distance)
+    # in bands of rows whose buffers stay in the cache across the window's offsets
+    for top in range(0, height, _SMOOTH_ROWS):
+        rows = slice(top, min(top + _SMOOTH_ROWS, height))
+        for dy in range(window):
+            for dx in range(window):
+                total[rows] += ranges[rows.start + dy : rows.stop + dy, dx : dx + width]
+    some = np.flatnonzero(~whole)
+    corner = some // width * padded.shape[1] + some % width  # the window's first pixel in the padded frame
+    centred, within = distance.ravel()[some], gap.ravel()[some]
+    partial, counted = np.zeros(some.size), np.zeros(some.size, count.dtype)
+    neighbour, apart, near = np.empty(some.size), np.empty(some.size), np.empty(some.size, bool)
+    with np.errstate(invalid="ignore"):
+        for dy in range(window):
+            for dx in range(window):
+                # the indices are in range; mode="raise" is ~3x slower
+                np.take(padded.ravel(), corner + (dy * padded.shape[1] + dx), out=neighbour, mode="clip")
+                np.abs(np.subtract(neighbour, centred, out=apart), out=apart)
+                near = np.less_equal(apart, within, out=near)
+                # + 0.0 leaves the sum as it is (it is never -0.0); a masked add is ~2x slower
+                partial += np.where(near, neighbour, 0.0)
+                counted += near
+    total.ravel()[some] = partial
+    count.ravel()[some] = counted
     with np.errstate(invalid="ignore", divide="ignore"):
         return points * (total / count / distance)[..., None]
 
@@ -313,7 +355,7 @@ def _nearest(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
     return np.where(known, np.take(image, r), np.nan)
 
 
-def _pose_map(points, transform, camera, view_points, columns, rows, tolerance, relative):
+def _pose_map(points, transform, camera, view_distance, columns, rows, tolerance, relative):
     """Map of one view by the poses, with the occlusion test.
 
     Parameters
@@ -323,8 +365,8 @@ def _pose_map(points, transform, camera, view_points, columns, rows, tolerance, 
     transform : (4, 4) ndarray
         Reference camera frame to the view's camera frame.
     camera : CameraModel
-    view_points : (h, w, 3) ndarray, metres
-        The view's own measured points on its cropped grid.
+    view_distance : (h, w) ndarray, metres
+        The ranges of the view's own measured points on its cropped grid.
     columns, rows : (w,), (h,) ndarray of int
         Sensor indices of the cropped grid.
     tolerance, relative : float
@@ -340,12 +382,17 @@ def _pose_map(points, transform, camera, view_points, columns, rows, tolerance, 
         ``range_rms`` (metres): rms of measured minus projected range over the
         mapped pixels with a measurement, a check of the poses.
     """
-    col, row, expected = _project(points, transform, camera)
-    _outside_to_nan(col, row, columns, rows)
-    measured = _nearest(_norm(view_points), col - columns[0], row - rows[0])
-    residual = measured - expected
-    with np.errstate(invalid="ignore"):
-        hidden = residual < -np.maximum(tolerance, relative * expected)
+    col, row, residual = (np.empty(points.shape[:2]) for _ in range(3))
+    hidden = np.empty(points.shape[:2], bool)
+    # in bands of rows whose buffers stay in the cache
+    step = max(1, _BAND // points.shape[1])
+    for top in range(0, points.shape[0], step):
+        band = slice(top, top + step)
+        col[band], row[band], expected = _project(points[band], transform, camera)
+        _outside_to_nan(col[band], row[band], columns, rows)
+        np.subtract(_nearest(view_distance, col[band] - columns[0], row[band] - rows[0]), expected, out=residual[band])
+        with np.errstate(invalid="ignore"):
+            np.less(residual[band], -np.maximum(tolerance, relative * expected), out=hidden[band])
     col[hidden] = np.nan
     row[hidden] = np.nan
     seen = np.isfinite(col) & np.isfinite(residual)
@@ -413,8 +460,20 @@ def _point_to_plane(transform, source, target, normals, camera, grid, tolerance,
     distance = np.sqrt(np.einsum("ij,ij->i", moved, moved))
     with np.errstate(invalid="ignore"):
         keep = np.abs(residual) <= np.maximum(tolerance, relative * distance)
-    local_normal = np.dot(normal[keep], transform[:3, :3])
-    return np.hstack([np.cross(np.take(source, found[keep], axis=0), local_normal), local_normal]), residual[keep]
+    kept = np.flatnonzero(keep)
+    local_normal = np.dot(np.take(normal, kept, axis=0), transform[:3, :3])
+    return _twist_jacobian(np.take(source, found[kept], axis=0), local_normal, local_normal), residual[kept]
+
+
+def _twist_jacobian(first: np.ndarray, second: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """Return ``np.hstack([np.cross(first, second), last])`` (M, 6) of (M, 3) arrays: the same values, fewer copies."""
+    out = np.empty((len(first), 6))
+    # np.cross's own products and differences, in its order
+    for axis, (one, two) in enumerate(((1, 2), (2, 0), (0, 1))):
+        np.multiply(first[:, one], second[:, two], out=out[:, axis])
+        out[:, axis] -= first[:, two] * second[:, one]
+    out[:, 3:] = last
+    return out
 
 
 def _remap(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
@@ -441,7 +500,7 @@ def _texture_residuals(transform, points, texture, sampled, camera, origin, tole
     points : (N, 3) ndarray, metres
         Reference points, reference camera frame.
     texture : (N,) ndarray
-        The reference texture at those pixels; NaN = not used.
+        The reference texture at those pixels (finite: pixels without one give no residual).
     sampled : (H, W, 4) ndarray of float32
         The view's texture, its column and row derivatives and its measured
         range (metres), on its own grid (:func:`_sampled`); NaN = missing.
@@ -467,12 +526,13 @@ def _texture_residuals(transform, points, texture, sampled, camera, origin, tole
     distance = np.sqrt(np.einsum("ij,ij->i", local, local))
     with np.errstate(invalid="ignore"):
         keep = np.abs(measured - distance) <= np.maximum(tolerance, relative * distance)
-    keep &= np.isfinite(value) & np.isfinite(d_col) & np.isfinite(d_row) & np.isfinite(texture)
-    local = local[keep]
+    keep &= np.isfinite(value) & np.isfinite(d_col) & np.isfinite(d_row)
+    kept = np.flatnonzero(keep)
+    local = np.take(local, kept, axis=0)
     # derivative of the texture at the projection with respect to the point (view frame)
     jacobian = camera.jacobian(local)
-    gradient = d_col[keep, None] * jacobian[:, 0] + d_row[keep, None] * jacobian[:, 1]
-    return np.hstack([np.cross(gradient, local), -gradient]), value[keep] - texture[keep]
+    gradient = d_col[kept, None] * jacobian[:, 0] + d_row[kept, None] * jacobian[:, 1]
+    return _twist_jacobian(gradient, local, -gradient), value[kept] - texture[kept]
 
 
 def _interior(distance: np.ndarray, tolerance: float, relative: float) -> np.ndarray:
@@ -515,9 +575,11 @@ def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
 
 def _sampled(texture: np.ndarray, distance: np.ndarray, sigma: float) -> np.ndarray:
     """Stack what :func:`_texture_residuals` samples: texture blurred by ``sigma``, its derivatives, range (float32)."""
-    blurred = _blurred(texture, sigma)
-    d_row, d_col = np.gradient(blurred)
-    return np.ascontiguousarray(np.stack([blurred, d_col, d_row, distance], axis=-1), dtype=np.float32)
+    out = np.empty((*texture.shape, 4), np.float32)
+    out[..., 0] = blurred = _blurred(texture, sigma)
+    out[..., 2], out[..., 1] = np.gradient(blurred)
+    out[..., 3] = distance
+    return out
 
 
 def _robust_deviation(residual: np.ndarray) -> float:
@@ -525,9 +587,14 @@ def _robust_deviation(residual: np.ndarray) -> float:
     return _MAD_SCALE * float(np.median(np.abs(residual - np.median(residual)))) if residual.size else float("nan")
 
 
-def _robust_normal_equations(jacobian: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Huber-weighted normal matrix (6, 6) and gradient (6,), residuals scaled by their robust deviation."""
-    scale = max(_robust_deviation(residual), np.finfo(np.float32).eps)
+def _robust_normal_equations(
+    jacobian: np.ndarray, residual: np.ndarray, deviation: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Huber-weighted normal matrix (6, 6) and gradient (6,), residuals scaled by their robust ``deviation``.
+
+    ``deviation`` is :func:`_robust_deviation` of ``residual`` (the caller has it already).
+    """
+    scale = max(deviation, np.finfo(np.float32).eps)
     size = np.abs(residual) / scale
     weight = np.where(size <= _HUBER, 1.0, _HUBER / np.maximum(size, _HUBER)) / scale**2
     weighted = jacobian * weight[:, None]
@@ -650,18 +717,23 @@ def _refine_pose(start, geometric, textured, correlation, prior, units, toleranc
                 geometric(transform),
                 textured(transform, level),
             )
+            deviations = _robust_deviation(shape_residual), _robust_deviation(texture_residual)
             info = {
                 **info,
                 "pairs": shape_residual.size,
                 "texture_pairs": texture_residual.size,
-                "shape_deviation_mm": 1e3 * _robust_deviation(shape_residual),
-                "texture_deviation": _robust_deviation(texture_residual),
+                "shape_deviation_mm": 1e3 * deviations[0],
+                "texture_deviation": deviations[1],
             }
             if shape_residual.size < _MIN_PAIRS:
                 return transform, {**info, "converged": False, "constrained": 0}
-            matrix, gradient = _observable(*_robust_normal_equations(shape_jacobian, shape_residual), units)
+            matrix, gradient = _observable(
+                *_robust_normal_equations(shape_jacobian, shape_residual, deviations[0]), units
+            )
             if texture_residual.size >= _MIN_TEXTURE:
-                texture_matrix, texture_gradient = _robust_normal_equations(texture_jacobian, texture_residual)
+                texture_matrix, texture_gradient = _robust_normal_equations(
+                    texture_jacobian, texture_residual, deviations[1]
+                )
                 matrix = matrix + texture_matrix / correlation[level]
                 gradient = gradient + texture_gradient / correlation[level]
             step, info["constrained"] = _regularised_step(
@@ -853,9 +925,11 @@ def _camera_model(ingest: xr.Dataset, xyz: np.ndarray, grid, item: str) -> tuple
     except ValueError as error:
         raise RegistrationError(f"item {item!r}: no camera model: {error}") from None
     if not residual <= _MODEL_RESIDUAL:
+        # NaN: the fitted lens model folds back before some of the points (it projects them nowhere)
+        misses = f"misses their pixels by {residual:.2f} px rms" if np.isfinite(residual) else "projects some nowhere"
         raise RegistrationError(
-            f"item {item!r}: the camera model fitted to the views' clouds misses their pixels by {residual:.2f} px "
-            f"rms (at most {_MODEL_RESIDUAL} px): give camera.intrinsics with their distortion in campaign.yaml"
+            f"item {item!r}: the camera model fitted to the views' clouds {misses} (at most {_MODEL_RESIDUAL} px "
+            f"rms): give camera.intrinsics with their distortion in campaign.yaml"
         )
     described = {"source": "estimated", **camera.as_dict(), "residual_px": residual}
     if intrinsics:
@@ -1035,7 +1109,7 @@ def _identity(grid: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarr
     return tuple(np.meshgrid(columns.astype(np.float64), rows.astype(np.float64)))
 
 
-def _pose_refiner(ingest, xyz, points, ref, grid, opts, camera, recorded):
+def _pose_refiner(ingest, xyz, distance, points, ref, grid, opts, camera, recorded):
     """Build the pose refinement of the poses methods (:func:`_refine_pose`).
 
     Parameters
@@ -1044,6 +1118,8 @@ def _pose_refiner(ingest, xyz, points, ref, grid, opts, camera, recorded):
         The item's ingest cube (``intensity``, ``valid``, attrs ``camera``).
     xyz : (view, h, w, 3) ndarray, metres
         Every view's points, its camera frame; NaN = invalid.
+    distance : callable
+        ``distance(index)``: the ranges (h, w) of view ``index``'s points, metres.
     points : (h, w, 3) ndarray, metres
         The reference view's points, range averaged (:func:`_smooth_range`).
     ref : int
@@ -1072,7 +1148,8 @@ def _pose_refiner(ingest, xyz, points, ref, grid, opts, camera, recorded):
     valid = np.asarray(ingest["valid"].values, dtype=bool)
     tolerances = opts["tolerance"], opts["relative"]
     stride = max(1, round(np.sqrt(points.shape[0] * points.shape[1] / _REFINE_SAMPLES)))
-    normals = plane_normals(xyz[ref], _REFINE_WINDOW)
+    # contiguous: the point-to-plane pairs gather its rows every iteration
+    normals = np.ascontiguousarray(plane_normals(xyz[ref], _REFINE_WINDOW))
     target = np.where(np.isfinite(normals), points, np.nan)
     # texture samples whose normalisation and blur windows keep off depth edges: the edges move
     # with the parallax between views, and the surfaces beside them are seen differently
@@ -1084,10 +1161,12 @@ def _pose_refiner(ingest, xyz, points, ref, grid, opts, camera, recorded):
     sample = points[::stride, ::stride].reshape(-1, 3)
     known = np.isfinite(sample).all(axis=-1)
     sample = sample[known]
-    textures = [
-        np.where(inside > _REFINE_CONTRAST + blur, _blurred(texture, blur), np.nan)[::stride, ::stride].ravel()[known]
-        for blur in _REFINE_LEVELS
-    ]
+    # per level, the samples with a texture (the others never give a texture residual) and their texture
+    texture_samples = []
+    for blur in _REFINE_LEVELS:
+        values = np.where(inside > _REFINE_CONTRAST + blur, _blurred(texture, blur), np.nan)[::stride, ::stride]
+        values = values.ravel()[known]
+        texture_samples.append((sample[np.isfinite(values)], values[np.isfinite(values)]))
     origin = (grid[1][0], grid[0][0])
     correlation = [_correlated(blur, stride) for blur in _REFINE_LEVELS]
     spread = _PRIOR if recorded else _COARSE_PRIOR
@@ -1097,14 +1176,14 @@ def _pose_refiner(ingest, xyz, points, ref, grid, opts, camera, recorded):
     def view_data(index: int):
         """Return a view's sampled points, texture stacks (:func:`_sampled`) per level and median range."""
         source = xyz[index][::stride, ::stride].reshape(-1, 3)
-        distance = _norm(xyz[index])
+        view_distance = distance(index)
         view_texture = _texture(intensity[index], valid[index], _REFINE_CONTRAST, np.float32)
-        view_inside = _interior(distance, *tolerances)
+        view_inside = _interior(view_distance, *tolerances)
         sampled = [
-            _sampled(np.where(view_inside > _REFINE_CONTRAST + blur, view_texture, np.nan), distance, blur)
+            _sampled(np.where(view_inside > _REFINE_CONTRAST + blur, view_texture, np.nan), view_distance, blur)
             for blur in _REFINE_LEVELS
         ]
-        return source[np.isfinite(source).all(axis=-1)], sampled, float(np.nanmedian(distance))
+        return source[np.isfinite(source).all(axis=-1)], sampled, float(np.nanmedian(view_distance))
 
     def refine(index: int, relative: np.ndarray, where: str, iterations: int = _REFINE_ITERATIONS):
         source, sampled, scale = view_data(index)  # scale: metres of surface motion per radian
@@ -1113,7 +1192,7 @@ def _pose_refiner(ingest, xyz, points, ref, grid, opts, camera, recorded):
             start,
             lambda current: _point_to_plane(current, source, target, normals, camera, grid, *tolerances),
             lambda current, level: _texture_residuals(
-                np.linalg.inv(current), sample, textures[level], sampled[level], camera, origin, *tolerances
+                np.linalg.inv(current), *texture_samples[level], sampled[level], camera, origin, *tolerances
             ),
             correlation,
             prior,
@@ -1322,8 +1401,14 @@ def _pose_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict, esti
     if not estimate:
         poses = np.asarray(ingest["pose"].values, dtype=np.float64)
         _check_poses(poses, views, item)
+
+    @cache
+    def distance(index: int) -> np.ndarray:
+        """Return the ranges (h, w) of view ``index``'s points, metres (its refinement and its map use them)."""
+        return _norm(xyz[index])
+
     refined = opts["refine"] or estimate  # a coarse estimate alone registers no better than to a few mm
-    refine = _pose_refiner(ingest, xyz, points, ref, grid, opts, camera, not estimate) if refined else None
+    refine = _pose_refiner(ingest, xyz, distance, points, ref, grid, opts, camera, not estimate) if refined else None
     estimated = _pose_estimator(xyz, ref, views, item, opts["tolerance"], refine) if estimate else None
 
     def one(index: int):
@@ -1337,7 +1422,7 @@ def _pose_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict, esti
             if refine is not None:
                 transform, found = refine(index, transform, f"item {item!r}, view {views[index]!r}")
         col, row, diagnostics = _pose_map(
-            points, transform, camera, xyz[index], *grid, opts["tolerance"], opts["relative"]
+            points, transform, camera, distance(index), *grid, opts["tolerance"], opts["relative"]
         )
         return col, row, {**diagnostics, **found}
 
