@@ -309,7 +309,7 @@ def features_table(campaign: Path, truth: Path, items, robots: dict) -> None:
             cells = []
             for perturbed, refine in runs.values():
                 cube = robots[name] if perturbed else ingest
-                features = process_item(cube, calibration, **params, refine=refine)["features"]
+                features = process_item(cube, calibration, **{**params, "refine": refine})["features"]
                 reference = xr.open_zarr(truth / f"{name}.zarr").sel(y=features.y, x=features.x).compute()
                 mask = interior(reference, camp.items[name])
                 rel = {
