@@ -4,37 +4,22 @@ The instrument function of the paper's eq. 5,
 
     f(d, theta) = (A + B / d^2) (C theta^2 + D theta + E),   theta in radians, d in metres,
 
-is fitted per pixel to the views of a flat Lambertian wall after dividing their
-intensities by cos(theta) (eq. 4): ``y = I / cos(theta)``. The two factors share
-one scale, fixed by the gauge E = 1. Calibrated reflectance is then
-``R = I / (k f)`` (eq. 2), with k from views of a reference panel (eq. 6).
+is fitted per pixel to the views of a flat Lambertian wall, ``y = I / cos(theta)`` (eq. 4), with
+the gauge E = 1; calibrated reflectance is ``R = I / (k f)`` (eq. 2), k from views of a reference
+panel (eq. 6). The model is linear in the six products ``vec([A, B]^T [C, D, E])`` of rank one, so
+a pixel's fit depends on 22 moments of its observations, which :class:`WallStatistics`
+accumulates view by view: memory and time do not grow with the views. :func:`fit_calibration`
+starts a rank-one fit from the linear one, refines it by Gauss-Newton, then smooths the angular
+factor (C, D: ~-0.99 correlated per pixel, smooth over a camera's field of view) over the sensor
+and refits (A, B) per pixel.
 
-The model is linear in the six products ``m = vec([A, B]^T [C, D, E])``, of rank
-one, so the least-squares problem of a pixel depends on its observations only
-through 22 moments, which :class:`WallStatistics` accumulates view by view: memory
-and fit time do not depend on the number of views. :func:`fit_calibration` solves
-the unconstrained linear problem, starts a rank-one fit from it (or from the
-sensor's typical angular shape), refines it by Gauss-Newton, then smooths the
-angular factor (C, D) over the sensor and refits (A, B) per pixel: per pixel, C
-and D are ~-0.99 correlated and their estimates noisy, while the angular response
-of a camera varies smoothly over its field of view (the paper's Table 2: C and D
-vary by 1.8 % and 1.4 % over the image). Measurements: ``docs/performance.md``.
-
-A real camera has residual systematics of a few % that eq. 5 cannot represent
-(e.g. a time-of-flight camera's cyclic error in distance). :func:`fit_correction`
-learns what eq. 5 leaves from the wall views themselves: the ratios ``y / f`` of
-random wall observations to their pixel's fitted f, pooled over the sensor, are
-smoothed into a factor ``c(d, theta)`` on a grid of distance and AOI (a penalised
-least-squares fit whose smoothness is chosen by cross-validation over the wall
-views); :func:`reflectance` then gives ``R = I / (k f c)``. Each pixel's eq. 5 fit
-takes up a part of the factor that depends on the distances and angles it saw,
-so :func:`calibrate` alternates once: eq. 5 is refitted to ``y / c`` and ``c``
-fitted again to the new ratios. The coefficients keep eq. 5's form and gauge;
-``c`` is a separate, recorded factor (``residual_correction=False``: the
-paper's plain method).
-
-Pixels without a fit are NaN with a status code (:data:`CALIBRATION_STATUS`),
-never a number.
+A real camera has residual systematics eq. 5 cannot represent (e.g. a time-of-flight camera's
+cyclic error in distance): :func:`fit_correction` smooths the ratios ``y / f`` of wall
+observations, pooled over the sensor, into a factor ``c(d, theta)`` (penalised least squares,
+smoothness by cross-validation over the wall views), and ``R = I / (k f c)``; :func:`calibrate`
+refits eq. 5 to ``y / c`` once and ``c`` again (``residual_correction=False``: the paper's plain
+method). Pixels without a fit are NaN with a status code (:data:`CALIBRATION_STATUS`), never a
+number. Measurements: ``docs/performance.md``.
 """
 
 from __future__ import annotations

@@ -6,25 +6,20 @@ surface point is seen; :func:`warp` resamples any (view, y, x) image there (NaN-
 bilinear), :func:`register` warps an item's reflectance and AOI, and :func:`registration_error`
 scores maps against the synthetic camera's truth. The methods:
 
-- ``"poses"``: the reference pixel's 3-D point (its range averaged over neighbours on the same
-  surface: depth noise moves it along the view's epipolar line) goes through the two poses and
-  the camera model (:class:`~surffin.method.camera_model.CameraModel`: campaign.yaml's intrinsics
-  with their lens distortion, or without distortion the model fitted to the clouds themselves)
-  onto the view's sensor; a point the view sees something closer than is occluded. Any
-  surface shape. A robot's recorded poses are off by ~1-2 mm and 0.2-0.5 deg,
-  several pixels on the sensor, so each view's pose is first refined against the reference
-  view (:func:`_refine_pose`: point-to-plane ICP, and direct alignment of the surface texture
-  for the motions a plane leaves free), bounded, and its correction reported.
-- ``"homography"``: SIFT keypoints on locally contrast-normalised log intensity, Lowe's ratio
-  test and a robust homography (USAC MAGSAC++); exact for one plane only, as in the paper: on
-  a specimen raised from its board it follows the plane with most keypoints unless an ``roi``
-  restricts the reference keypoints to the plane wanted.
-- ``"clouds"``: as ``"poses"``, with each view's pose relative to the reference view estimated
-  from the clouds alone (:func:`_pose_estimator`): the dominant planes fix tilt and distance,
-  the relief over them (a specimen's edges) the turn and shift along the plane, and the
-  refinement (with a broad prior and no bounds) the rest; the surface's texture chooses
-  among the poses a symmetric relief leaves. Needs relief (a plane alone fixes only 3 of
-  the 6 directions of a pose).
+- ``"poses"``: the reference pixel's 3-D point (range averaged over its surface neighbours) goes
+  through the two poses and the camera model (:class:`~surffin.method.camera_model.CameraModel`:
+  the given intrinsics with their distortion, else fitted to the clouds) onto the view's sensor;
+  a point behind something closer is occluded. Any surface shape. A robot's recorded poses are
+  off by ~1-2 mm and 0.2-0.5 deg, so each view's pose is first refined against the reference view
+  (:func:`_refine_pose`: point-to-plane ICP and direct alignment of the texture), bounded, and
+  its correction reported.
+- ``"homography"``: SIFT keypoints on contrast-normalised log intensity, Lowe's ratio test and a
+  robust homography (USAC MAGSAC++): exact for one plane only, as in the paper; an ``roi`` picks
+  the plane.
+- ``"clouds"``: as ``"poses"``, each view's pose estimated from the clouds alone
+  (:func:`_pose_estimator`): the dominant planes fix tilt and distance, the relief the turn and
+  shift, the refinement the rest, the texture chooses among a symmetric relief's poses. Needs
+  relief (a plane fixes only 3 of a pose's 6 directions).
 - ``"auto"``: poses when every view has one, else ``"clouds"``, and where that fails the homography.
 """
 
