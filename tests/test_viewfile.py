@@ -795,3 +795,8 @@ def test_list_views_of_missing_folder(tmp_path):
 def test_valid_pixels():
     xyz = np.array([[1.0, 2.0, 3.0], [0.0, 0.0, 0.0], [1.0, np.nan, 3.0], [1.0, 1.0, -1.0], [0.0, 0.0, 1e-9]])
     np.testing.assert_array_equal(valid_pixels(xyz), [True, False, False, False, True])
+    infinite = np.array([[np.inf, 0.0, 1.0], [0.0, -np.inf, 1.0], [0.0, 0.0, np.inf], [0.0, 0.0, np.nan]])
+    np.testing.assert_array_equal(valid_pixels(infinite), [False] * 4)
+    grid = np.random.default_rng(0).normal(size=(6, 8, 3))
+    grid[grid > 1.5] = np.inf
+    np.testing.assert_array_equal(valid_pixels(grid), np.isfinite(grid).all(axis=-1) & (grid[..., 2] > 0))
