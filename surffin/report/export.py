@@ -214,22 +214,26 @@ def _provenance(labels: xr.Dataset, calibration: Path) -> list[str]:
     return lines
 
 
-def _specimen_ply(name: str, processed: Path, out: Path, classes: Sequence[str]) -> Path:
-    features = open_store(processed / "features" / f"{name}.zarr").load()
+def _item_store(processed: Path, folder: str, name: str) -> xr.Dataset:
+    """Open an item's store without dask: a variable is read when used (through dask, each cost a graph)."""
+    return open_store(processed / folder / f"{name}.zarr", chunks=None)
+
+
+def _specimen_ply(name: str, features: xr.Dataset, processed: Path, out: Path, classes: Sequence[str]) -> Path:
     own = classes.index(features.attrs["class"]) if features.attrs.get("class") in classes else UNCLASSIFIED
     label = np.full(features["R0"].shape, own, dtype=np.int16)
-    points, fields = _cloud(features, open_store(processed / "ingest" / f"{name}.zarr"), label)
+    points, fields = _cloud(features, _item_store(processed, "ingest", name), label)
     return write_ply(out / f"{name}.ply", points, fields)
 
 
 def _scene(name: str, processed: Path, out: Path, classes: Sequence[str], context: Mapping) -> list[Path]:
-    labels = open_store(processed / "labels" / f"{name}.zarr").load()
-    features = open_store(processed / "features" / f"{name}.zarr").load()
-    ingest = open_store(processed / "ingest" / f"{name}.zarr")
+    labels = _item_store(processed, "labels", name)
+    features = _item_store(processed, "features", name)
+    ingest = _item_store(processed, "ingest", name)
     label = labels["label_filtered"].values
-    reference = reference_view(ingest, labels["label"])[0].load()
+    reference = reference_view(ingest, labels["label"])[0]
     points = reference["xyz"].transpose("y", "x", "axis").values
-    aoi = reference_view(open_store(processed / "aoi" / f"{name}.zarr"), labels["label"])[0]["aoi"].values
+    aoi = reference_view(_item_store(processed, "aoi", name), labels["label"])[0]["aoi"].values
     fx, fy = _focal_lengths(points, features.attrs.get("camera", {}), labels.y.values, labels.x.values)
     rows = class_areas(label, labels["unclassified_reason"].values, pixel_area(points, aoi, fx, fy), classes)
     paths = {kind: out / f"{name}{kind}" for kind in ("-classes.csv", "-labels.png", ".ply", "-report.pdf")}
@@ -282,8 +286,9 @@ def export_results(
         context = {"accuracy": _accuracy_line(scores), "calibration": calibration}
         written += _scene(name, processed, out, classes, context)
         log.info("export: scene %s written to %s", name, out)
-    for name in items:
-        if name not in scenes and open_store(processed / "features" / f"{name}.zarr").attrs.get("kind") == "specimen":
-            written.append(_specimen_ply(name, processed, out, classes))
+    for name in (item for item in items if item not in scenes):
+        features = _item_store(processed, "features", name)
+        if features.attrs.get("kind") == "specimen":
+            written.append(_specimen_ply(name, features, processed, out, classes))
     log.info("export: %d files in %s", len(written), out)
     return written
