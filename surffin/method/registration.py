@@ -475,6 +475,8 @@ def _remap(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
     """Bilinear samples (N, C) of a float32 image (H, W, C <= 4) at array positions (N,) by OpenCV; NaN outside."""
     # cv2.remap takes maps of fewer than 2**15 rows and columns: lay the positions out in rows
     count = col.size
+    if not count:  # no position (a level without textured samples): cv2.remap refuses empty maps
+        return np.empty((0, image.shape[-1]), image.dtype)
     padded = -(-count // _REMAP_ROW) * _REMAP_ROW
     maps = [
         np.pad(value, (0, padded - count), constant_values=-1.0).astype(np.float32).reshape(-1, _REMAP_ROW)
