@@ -26,10 +26,7 @@ and their ratios to the same seed's flat row (the spread). The default run takes
 The method's plane fits carry each normal from its window's centroid to the pixel along the normal's slopes
 (:mod:`surffin.method.geometry`); before that, a plane of a window shifted by half its side or cut by the crop's
 border had the normal of the window's centroid, up to 3.5 deg off a 0.3 m cylinder, and the curved rows' n errors
-were 2.6-3.1 times the flat row's. Until the carry went along the surface (the tangent plane) instead of linearly in
-ray coordinates, and each plane's own bias on a curved window was taken out (``_fit_bias``), the 40 deg view of the
-convex 0.3 m panel kept a +0.13 deg AOI bias (mean over noise draws; the 120 px windows' planes were 0.4-0.8 deg
-off), and its n error was 1.51-1.63 times flat (seeds 0-2); after, 1.17-1.28.
+were 2.6-3.1 times the flat row's.
 """
 
 from __future__ import annotations

@@ -15,13 +15,12 @@ residual is at most twice the smallest; each level doubles the windows, up to ``
 the window is usable and its residual within 1.5 times the smallest base residual around the pixel
 (the depth noise): a crease or a strong curvature refuses growth.
 
-Curved surfaces: a grown window's plane has the surface's normal near its centroid, not at the pixel
-(3.5 deg at 18 mm on a 0.3 m cylinder). Each plane comes with the slopes of the normal along the
-surface, from the windows half a window away; the plane's own bias on a curved window (second- and
-third-order terms of q in perspective) is taken out by fitting the same plane to the modelled
-surface (:func:`_fit_bias`), and the normal is carried to where the pixel's ray meets the surface by
-what the carry exceeds its noise (:func:`_carry`): on a plane nothing changes. Measurements:
-``docs/performance.md``, ``benchmarks/bench_curved.py``.
+Curved surfaces: a grown window's plane has the surface's normal at its centroid, not at the pixel
+(3.5 deg at 18 mm on a 0.3 m cylinder). Above the base level each plane comes with the slopes of the
+normal with x', y' from the windows half a window away, and the pixel's normal is carried from the
+centroid to the pixel along them by what the carry exceeds its noise (:func:`_carry`): on a plane
+the noise is all there is and the normal is kept. Measurements: ``docs/performance.md``,
+``benchmarks/bench_curved.py``.
 """
 
 from __future__ import annotations
@@ -71,9 +70,6 @@ _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 _GROWTH = 1.5
 # A slope of the normal carries a pixel's normal only by what it exceeds this many standard deviations of its noise.
 _SIGNIFICANCE = 2.0
-# Gauss-Legendre nodes and weights on [-1, 1] (3 points: exact for polynomials up to degree 5).
-_NODES = (-0.7745966692414834, 0.0, 0.7745966692414834)
-_WEIGHTS = (5.0 / 9.0, 8.0 / 9.0, 5.0 / 9.0)
 # Pixels per block of the per-pixel arithmetic: its temporaries stay in the L2 cache.
 _BLOCK = 16384
 
@@ -347,17 +343,14 @@ def _level_planes(
         :func:`_choose_windows`: flat index of the chosen window's centre, -1 for none.
     smallest : (h, w) ndarray of float32
         The smallest residual among the cell's 9 windows.
-    centroid : (3, h, w) ndarray of float64 or None
-        The point of the plane of the window centred on each cell on the ray through the mean ray coordinates
-        x', y' of its valid pixels, metres: where its plane is the surface's tangent plane, to first order.
-    spread : (2, h, w) ndarray of float64 or None
-        Variance of the ray coordinates x', y' of the valid pixels of that window.
+    centroid : (2, h, w) ndarray of float64 or None
+        Mean ray coordinates x', y' of the valid pixels of the window centred on
+        each cell: where its plane is the surface's tangent plane, to first order.
     noise : (h, w) ndarray of float64 or None
         Variance of the direction of that window's normal from its residual,
         rad^2 (the least-squares variance of the slopes a, b over |(a, b, e)|^2).
     """
-    centroid = np.empty((3, *moments.shape[1:])) if slopes else None
-    spread = np.empty((2, *moments.shape[1:])) if slopes else None
+    centroid = np.empty((2, *moments.shape[1:])) if slopes else None
     noise = np.empty(moments.shape[1:]) if slopes else None
     for plane in moments:
         _box(plane, window, out=plane)
@@ -384,16 +377,12 @@ def _level_planes(
             variance = (sqq - a * sxq - b * syq) * inverse
             if slopes:
                 scale = _normalise(normal[:, rows])
-                # the plane's point on the ray through the mean ray coordinates: there q is their mean
-                np.divide(mean[:2], mean[2], out=centroid[:2, rows])
-                np.divide(1.0, mean[2], out=centroid[2, rows])
-                np.multiply(sxx, inverse, out=spread[0, rows])
-                np.multiply(syy, inverse, out=spread[1, rows])
+                centroid[:, rows] = mean[:2]
                 noise[rows] = np.maximum(variance, 0.0) * (sxx + syy) * inverse_determinant * scale * scale
             mean[2] *= mean[2]
             residual[rows] = np.where(planar, variance / (mean[2] * mean[2]), np.inf)
     source, smallest = _choose_windows(residual, eligible, window)
-    return normal, residual, source, smallest, centroid, spread, noise
+    return normal, residual, source, smallest, centroid, noise
 
 
 def _normalise(vector: np.ndarray) -> np.ndarray:
@@ -419,22 +408,19 @@ def _normal_slopes(
     away from it: a window shifted by half its side, cut by the image border
     or holed, or a cell's pixel off the cell's centre, errs by the curvature
     times that offset (3.5 deg for 18 mm on a 0.3 m radius). The slopes ``J``
-    of the normal along the surface (with the x, y of a step in the tangent
-    plane, in which the normal of a cylinder or a sphere is linear; in ray
-    coordinates perspective adds a second-order term) are the least-squares fit
-    to the windows half a window away along rows and columns (those whose
-    residual is within :data:`_PLANARITY` times the chosen window's: never
-    across a crease), with their variance from the windows' normal noise;
-    :func:`_fit_bias` corrects the plane and :func:`_carry` takes the normal to
-    each pixel.
+    of the normal with the ray coordinates x', y' are the least-squares fit to
+    the windows half a window away along rows and columns (those whose residual
+    is within :data:`_PLANARITY` times the chosen window's: never across a
+    crease), with their variance from the windows' normal noise; :func:`_carry`
+    takes the normal to each pixel.
 
     Parameters
     ----------
     normal : (3, h, w) ndarray of float64
         Unit normals of the windows centred on each cell (:func:`_level_planes`),
         consistently oriented (``(a, b, e) . P = 1`` on the plane).
-    centroid : (3, h, w) ndarray of float64
-        Their centroids, metres (:func:`_level_planes`).
+    centroid : (2, h, w) ndarray of float64
+        Their centroids in ray coordinates.
     noise : (h, w) ndarray of float64
         Variance of their normals' directions, rad^2.
     residual : (h, w) ndarray of float64
@@ -448,13 +434,12 @@ def _normal_slopes(
 
     Returns
     -------
-    model : (15, k) ndarray of float64
-        The chosen window's normal ``n`` (3) and centroid ``P`` (3), the slopes
-        ``J`` (3 x 2, row-major: d n_k / d u_x, d n_k / d u_y, with u the x, y of
-        a step in the tangent plane, metres; along the one axis with neighbours
-        when only one has) and the variance ``V`` of ``J``'s rows (xx, xy, yy,
-        1/m^2: a correction ``J u`` has variance ``u^T V u`` per unit of normal
-        direction); zero at the cells without a window.
+    model : (14, k) ndarray of float64
+        The chosen window's normal ``n`` (3) and centroid ``m`` (2), the slopes
+        ``J`` (3 x 2, row-major: d n_k / d x', d n_k / d y'; along the one axis
+        with neighbours when only one has) and the variance ``V`` of ``J``'s
+        rows (xx, xy, yy, 1/(x' y') units: a correction ``J o`` has variance
+        ``o^T V o`` per unit of normal direction); zero at the cells without a window.
     known : (k,) ndarray of bool
         The slopes are known along both axes.
     """
@@ -463,10 +448,10 @@ def _normal_slopes(
     cells = np.flatnonzero(chosen >= 0)  # the needed cells with a window
     chosen = chosen[cells]
     row, column = np.divmod(chosen, width)
-    normals, centroids, residuals = normal.reshape(3, -1), centroid.reshape(3, -1), residual.reshape(-1)
-    values = np.empty((15, cells.size))
-    own_normal, own_centroid = values[:3], values[3:6]
-    slopes, variance = values[6:12].reshape(3, 2, -1), values[12:]
+    normals, centroids, residuals = normal.reshape(3, -1), centroid.reshape(2, -1), residual.reshape(-1)
+    values = np.empty((14, cells.size))
+    own_normal, own_centroid = values[:3], values[3:5]
+    slopes, variance = values[5:11].reshape(3, 2, -1), values[11:]
     own_normal[:], own_centroid[:] = normals[:, chosen], centroids[:, chosen]
     limit = _PLANARITY * np.maximum(residuals[chosen], 0.0)
     noises, own_noise = noise.reshape(-1), noise.reshape(-1)[chosen]
@@ -479,10 +464,7 @@ def _normal_slopes(
             inside = (other_row >= 0) & (other_row < height) & (other_column >= 0) & (other_column < width)
             other = np.where(inside, other_row * width + other_column, 0)
             used = inside & (residuals[other] <= limit)
-            # the step between the centroids in the tangent plane, its x, y: linear in the surface's coordinates
-            shift = np.where(used, centroids[:, other] - own_centroid, 0.0)
-            along = shift[0] * own_normal[0] + shift[1] * own_normal[1] + shift[2] * own_normal[2]
-            step = shift[:2] - own_normal[:2] * along
+            step = np.where(used, centroids[:, other] - own_centroid, 0.0)
             change = np.where(used, normals[:, other] - own_normal, 0.0)
             products = np.stack((step[0] * step[0], step[0] * step[1], step[1] * step[1]))
             scatter += products
@@ -511,7 +493,7 @@ def _normal_slopes(
     variance[2] = pxy * (pxy * sxx + pyy * sxy) + pyy * (pxy * sxy + pyy * syy)
     if cells.size == needed.size:
         return values, both
-    model = np.zeros((15, needed.size))
+    model = np.zeros((14, needed.size))
     model[:, cells] = values
     known = np.zeros(needed.size, dtype=bool)
     known[cells] = both
@@ -519,46 +501,23 @@ def _normal_slopes(
 
 
 def _carry(model: np.ndarray, rays: np.ndarray) -> np.ndarray:
-    """Evaluate :func:`_level_models`' models (15, n), taken at n pixels, at their rays (2, n): unit normals (3, n).
+    """Evaluate :func:`_normal_slopes`' models (14, n), taken at n pixels, at their rays (2, n): unit normals (3, n).
 
-    The pixel's ray meets the model's plane ``n . P = offset`` at a step from the centroid whose x, y are ``u``,
-    and the bent surface (:func:`_fit_bias`) a little farther, where the correction is kept.
-    The correction ``c = J u``, with ``v = u^T V u`` its noise variance, is
+    The correction ``c = J (r - m)``, with ``v = o^T V o`` its noise variance, is
     shrunk by ``max(0, 1 - s^2 v / |c|^2)`` (s = :data:`_SIGNIFICANCE`, a
     positive-part James-Stein factor): where the slopes are noise (a plane) it
     vanishes, and the plane's normal is kept as it is; where they are the
     surface's curvature it stays.
     """
-    normal, slopes, variance = model[:3], model[6:12], model[12:]
-    facing = normal[0] * rays[0]
-    facing += normal[1] * rays[1]
-    facing += normal[2]
-    with np.errstate(invalid="ignore", divide="ignore"):  # a ray along the plane: NaN
-        t = np.divide(model[5], facing, out=facing)  # the plane n . P = offset along the ray (rx, ry, 1)
-        x, y = rays[0] * t, rays[1] * t
-        x -= model[3]
-        y -= model[4]
-        correction = slopes[0::2] * x + slopes[1::2] * y
-        noise = variance[0] * x * x + 2.0 * variance[1] * x * y + variance[2] * y * y
-        size = correction[0] * correction[0] + correction[1] * correction[1] + correction[2] * correction[2]
+    x, y = rays[0] - model[3], rays[1] - model[4]
+    variance = model[11:]
+    correction = model[5:11:2] * x + model[6:11:2] * y
+    noise = variance[0] * x * x + 2.0 * variance[1] * x * y + variance[2] * y * y
+    size = correction[0] * correction[0] + correction[1] * correction[1] + correction[2] * correction[2]
+    with np.errstate(invalid="ignore", divide="ignore"):
         shrink = np.where(size > 0.0, np.clip(1.0 - _SIGNIFICANCE**2 * noise / size, 0.0, 1.0), 0.0)
-        # where the surface bends (the correction stays), it leaves the plane by -(tau . c) / 2 along the normal
-        # (tau = (x, y, z) the step in the tangent plane): the ray meets it farther by that over the facing, which
-        # moves the step along the ray's tangential part
-        bent = np.flatnonzero(shrink)
-        if bent.size:
-            if 4 * bent.size > shrink.size:  # most of them (a curved surface): no gather
-                bent = slice(None)
-            (nx, ny, nz), (rx, ry), (x, y) = normal[:, bent], rays[:, bent], (x[bent], y[bent])
-            turn = correction[:, bent]
-            facing = nx * rx + ny * ry + nz
-            farther = (x * turn[0] + y * turn[1] - (nx * x + ny * y) / nz * turn[2]) * (-0.5 / facing)
-            x += farther * (rx - nx * facing)
-            y += farther * (ry - ny * facing)
-            turns = slopes[:, bent]
-            correction[:, bent] = turns[0::2] * x + turns[1::2] * y
     correction *= shrink
-    correction += normal
+    correction += model[:3]
     _normalise(correction)
     return correction
 
@@ -605,7 +564,7 @@ def _window_planes(
     rays = (moments[1:3] + centre[:2, None, None]).reshape(2, -1) if levels > 1 else None
     pooled = _pool(moments) if levels > 1 else None
     min_count = max(3, math.ceil(min_fraction * window * window - 1e-9))
-    base, _, base_source, smallest, _, _, _ = _level_planes(moments, centre, edges, eligible, window, min_count, False)
+    base, _, base_source, smallest, _, _ = _level_planes(moments, centre, edges, eligible, window, min_count, False)
     taken = base_source >= 0
     limit = _GROWTH * smallest
     edge_count, eligible_count = edges.astype(np.float32), eligible.astype(np.float32)
@@ -615,7 +574,7 @@ def _window_planes(
         moments, edge_count, eligible_count = pooled, _pool(edge_count), _pool(eligible_count)
         pooled = _pool(moments) if level + 1 < levels else None
         min_count = max(3, math.ceil(min_fraction * (window * 2**level) ** 2 - 1e-9))
-        normal, residual, source, _, centroid, spread, noise = _level_planes(
+        normal, residual, source, _, centroid, noise = _level_planes(
             moments, centre, edge_count > 0, eligible_count > 0, window, min_count
         )
         chosen = np.where(source >= 0, source, 0)
@@ -623,7 +582,7 @@ def _window_planes(
         taken &= _upsample(fit, level, valid.shape) <= limit
         if not taken.any():
             break
-        planes.append((normal, centroid, spread, noise, residual, source))
+        planes.append((normal, centroid, noise, residual, source))
         last += taken
     out = np.full((3, *valid.shape), np.nan)
     flat = out.reshape(3, -1)
@@ -650,15 +609,12 @@ def _level_models(planes: list, cells: list, half: int) -> list[tuple[np.ndarray
     A cell without slopes on both axes takes the mean of its 2 x 2 smaller cells' that had them; so, from the
     largest level down, a level's models are computed at the cells its pixels take (``cells[k]``: flat indices,
     for the pixels whose last level is k + 1) and at the smaller cells of the cells above that lack slopes.
-    Each model's plane is then corrected (:func:`_fit_bias`) and its centroid's z replaced by the plane's offset
-    ``n . P``, as :func:`_carry` takes it. Returns, for each level, the models (15, m) of those cells and the column
-    of each pixel's cell among them.
+    Returns, for each level, the models (14, m) of those cells and the column of each pixel's cell among them.
     """
     found = []  # per level from the largest: models, slopes known, cells, column of each cell's model, grid shape
     lacking = None  # the cells of the level above without slopes on both axes
-    spreads = []  # per level from the largest: the variances of the ray coordinates of each cell's chosen window
     for level in range(len(planes), 0, -1):
-        normal, centroid, spread, noise, residual, source = planes[level - 1]
+        normal, centroid, noise, residual, source = planes[level - 1]
         needed = np.zeros(source.shape, dtype=bool)
         needed.reshape(-1)[cells[level - 1]] = True
         if lacking is not None:
@@ -670,86 +626,10 @@ def _level_models(planes: list, cells: list, half: int) -> list[tuple[np.ndarray
         column = np.full(source.size, -1)  # -1: no model
         column[needed] = np.arange(needed.size)
         found.append((model, known, needed, column, source.shape))
-        spreads.append(spread.reshape(2, -1).take(np.maximum(source.reshape(-1)[needed], 0), axis=1))
     found.reverse()
-    spreads.reverse()
     for level, smaller in zip(found[1:], found):
         _fill_slopes(level, smaller)
-    for (model, *_), spread in zip(found, spreads):
-        _fit_bias(model, spread)
-        # the carry takes the plane as n . P = offset: it replaces the centroid's z
-        model[5] = model[0] * model[3] + model[1] * model[4] + model[2] * model[5]
     return [(model, column.take(pixel_cells)) for (model, _, _, column, _), pixel_cells in zip(found, cells)]
-
-
-def _fit_bias(model: np.ndarray, spread: np.ndarray) -> None:
-    """Take out of the models' (15, m) normals and centroids what fitting a plane to a curved window does, in place.
-
-    A plane fitted in ray coordinates to a window of a curved surface is not the surface's tangent plane at the
-    window's centroid: the inverse depth ``q(x', y')`` of a curved surface seen in perspective has second- and
-    third-order terms, which shift the plane's offset (their mean over the window) and its slopes. On a 0.3 m
-    cylinder seen at 40 deg from 0.35 m, a 60 px window's normal is 0.2 deg, a 120 px one's 0.8 deg off the
-    surface's at its centroid, a bias no carry removes. The model's surface (its tangent plane bent by the slopes
-    ``J`` of the normal: the height ``-(tau . J tau) / 2`` along the normal over a tangential step ``tau``) is
-    sampled along the rays of a rectangle of the window's centroid and variances of ray coordinates (3 x 3
-    Gauss-Legendre nodes), the same plane fitted to it, and the difference from the model's plane taken out,
-    shrunk as :func:`_carry` shrinks a correction, by the significance of ``J`` against its noise: on a plane
-    nothing is taken out.
-
-    Parameters
-    ----------
-    model : (15, m) ndarray of float64
-        :func:`_normal_slopes`' models (normal, centroid, slopes, their variance); zero where no window.
-    spread : (2, m) ndarray of float64
-        Variance of the ray coordinates x', y' of each model's window.
-    """
-    normal, centroid, slopes, variance = model[:3], model[3:6], model[6:12], model[12:]
-    size = np.sum(slopes * slopes, axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        # the noise of |J|^2: each of the three rows has the variance V
-        shrink = 1.0 - _SIGNIFICANCE**2 * 3.0 * (variance[0] + variance[2]) / size
-    bent = np.flatnonzero(shrink > 0.0)  # NaN (no slopes) is not
-    if not bent.size:
-        return
-    shrink = shrink[bent]
-    (nx, ny, nz), centre, turns = normal[:, bent], centroid[:, bent], slopes[:, bent]
-    spread = np.maximum(spread[:, bent], 0.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        x, y = centre[0] / centre[2], centre[1] / centre[2]
-        offset = nx * centre[0] + ny * centre[1] + nz * centre[2]
-        half = np.sqrt(3.0 * spread)  # the rectangle of the same variances
-        # the weighted means of q, x' q and y' q (x', y' about the centroid's ray; their means are 0)
-        sums = np.zeros((3, bent.size))
-        for u, wu in zip(_NODES, _WEIGHTS):
-            for v, wv in zip(_NODES, _WEIGHTS):
-                dx, dy = half[0] * u, half[1] * v
-                rx, ry = x + dx, y + dy
-                facing = nx * rx + ny * ry + nz
-                t = offset / facing  # the tangent plane, then the bent surface along the ray (twice)
-                for _ in range(2):
-                    step = (rx * t - centre[0], ry * t - centre[1], t - centre[2])
-                    along = nx * step[0] + ny * step[1] + nz * step[2]
-                    tangential = (step[0] - nx * along, step[1] - ny * along, step[2] - nz * along)
-                    height = sum(
-                        tangential[k] * (turns[2 * k] * tangential[0] + turns[2 * k + 1] * tangential[1])
-                        for k in range(3)
-                    )
-                    t = t + (-0.5 * height - along) / facing
-                q = 0.25 * wu * wv / t  # the weights sum to 4
-                sums[0] += q
-                sums[1] += dx * q
-                sums[2] += dy * q
-        a, b = sums[1] / spread[0], sums[2] / spread[1]
-        # the sampled plane (a, b, e) in absolute ray coordinates, scaled as the model's normal (1 / offset at the
-        # surface, which passes through the centroid); its q on the centroid's ray is the mean q
-        sampled = np.stack((a, b, sums[0] - a * x - b * y)) * offset
-        fix = np.isfinite(sampled).all(axis=0)
-        corrected = normal[:, bent] - shrink * (sampled - normal[:, bent])
-        _normalise(corrected)
-    fixed = bent[fix]
-    normal[:, fixed] = corrected[:, fix]
-    # the fitted plane met the centroid's ray at 1 / mean q of the surface's depth there (the centroid's z)
-    centroid[:, fixed] *= 1.0 + shrink[fix] * (sums[0, fix] * centre[2, fix] - 1.0)
 
 
 def _fill_slopes(level: tuple, smaller: tuple) -> None:
@@ -758,7 +638,7 @@ def _fill_slopes(level: tuple, smaller: tuple) -> None:
     Parameters
     ----------
     level, smaller : tuple
-        A level's and the level below's models (15, m), slopes known (m,) bool, cells (m,) (flat indices),
+        A level's and the level below's models (14, m), slopes known (m,) bool, cells (m,) (flat indices),
         column of each cell's model (h * w,) (-1: none) and grid shape (h, w), as :func:`_level_models` keeps
         them: every smaller cell of a cell lacking slopes has a model. Summed in :func:`_pool`'s order.
     """
@@ -771,14 +651,14 @@ def _fill_slopes(level: tuple, smaller: tuple) -> None:
         inside = (2 * row + dy < grid[0]) & (2 * column + dx < grid[1])
         child = columns.take(np.where(inside, (2 * row + dy) * grid[1] + 2 * column + dx, 0))
         present = inside & sloped.take(child)
-        term = slopes[6:].take(child, axis=1) * present
+        term = slopes[5:].take(child, axis=1) * present
         if total is None:
             total, weight = term, present.astype(np.float64)
         else:
             total += term
             weight += present
     fill = weight > 0
-    model[6:, lacking[fill]] = total[:, fill] / weight[fill]
+    model[5:, lacking[fill]] = total[:, fill] / weight[fill]
     known[lacking[fill]] = True
 
 

@@ -64,7 +64,7 @@ STAGES = {
     for stage in (
         Stage("calibration", calibrate, ("views",), "calibration.zarr", 7),
         Stage("ingest", ingest_item, ("views",), "ingest/{item}.zarr", 3),
-        _chain("aoi", 7),
+        _chain("aoi", 6),
         _chain("reflectance", 5),
         _chain("registration", 7),
         _chain("features", 6),
