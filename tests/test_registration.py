@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import re
 import shutil
 from pathlib import Path
 from typing import NamedTuple
@@ -953,18 +954,27 @@ def relief(height_of) -> np.ndarray:
     return np.stack([u * z, v * z, z], axis=-1)
 
 
+def bumpy() -> np.ndarray:
+    """xyz of :func:`relief`'s camera over 1 cm high bumps, 5 cm by 4 cm apart."""
+    return relief(lambda x, y: 0.01 * np.sin(2 * np.pi * x / 0.05) * np.sin(2 * np.pi * y / 0.04))
+
+
+def ripples() -> np.ndarray:
+    """An intensity texture (80, 100) of :func:`relief`'s camera."""
+    rows, cols = np.mgrid[0:80, 0:100]
+    return (500 + 200 * np.sin(0.7 * cols) * np.cos(0.5 * rows)).astype(np.float32)
+
+
 def test_a_view_whose_recorded_pose_puts_it_off_the_reference_surface_is_named():
     """Its recorded pose 3 cm off along the optical axis: no point within the 5 mm tolerance of the reference."""
-    bumps = relief(lambda x, y: 0.01 * np.sin(2 * np.pi * x / 0.05) * np.sin(2 * np.pi * y / 0.04))
+    surface = bumpy()
     off = np.eye(4)
     off[2, 3] = 0.03
-    rows, cols = np.mgrid[0:80, 0:100]
-    texture = (500 + 200 * np.sin(0.7 * cols) * np.cos(0.5 * rows)).astype(np.float32)
-    cube = item("S3", {"v00": bumps, "v01": bumps}, RELIEF_CAMERA, [np.eye(4), off], texture)
+    cube = item("S3", {"v00": surface, "v01": surface}, RELIEF_CAMERA, [np.eye(4), off], ripples())
     with pytest.raises(
         RegistrationError,
         match=r"^item 'S3', view 'v01': only \d+ of the view's points lie on the reference surface .*too few to "
-        r"refine its pose; check the pose, or map with the recorded poses \(refine=False\)",
+        r"refine its pose; check the view and its pose, or map with the recorded poses \(refine=False\)",
     ):
         registration_maps(cube, method="poses", max_translation=1.0)
     registration_maps(cube, method="poses", refine=False)  # the recorded poses, as asked
@@ -1030,3 +1040,104 @@ def test_a_flat_item_without_poses_names_the_view_and_both_failures():
         clouds
     )
     assert homography.startswith("item 'flat', view 'v01' (reference view 'v00'): only 0 keypoint matches")
+
+
+def test_a_refinement_that_does_not_settle_names_the_view_and_its_correction():
+    """A view of scattered points (each 1 cm off the surface at random): its point-to-plane pairs change with every
+    step, and for most draws of the scatter the steps hop about without settling: the view is refused, not kept at a
+    pose the data did not fix."""
+    refusals = []
+    for seed in range(8):
+        scattered = bumpy()
+        scattered[..., 2] += np.random.default_rng(seed).uniform(-0.01, 0.01, scattered.shape[:2])
+        cube = item("S5", {"v00": bumpy(), "v01": scattered}, RELIEF_CAMERA, [np.eye(4), np.eye(4)], ripples())
+        try:
+            registration_maps(cube, method="poses")
+        except RegistrationError as error:
+            refusals.append(str(error))
+    assert len(refusals) >= 2  # 5 of these 8 draws here
+    for message in refusals:
+        assert re.fullmatch(
+            r"item 'S5', view 'v01': the pose refinement did not converge in \d+ iterations \(correction so far "
+            r"[\d.]+ mm, [\d.]+ deg\); check the view and its pose, or map with the recorded poses \(refine=False\)",
+            message,
+        ), message
+
+
+def test_the_clouds_refuse_a_view_none_of_whose_coarse_poses_refines():
+    """The view's surface is two levels 2 cm either side of its plane, the reference's bumps reach 1 cm: wherever the
+    coarse poses put the view, none of its points lies within 5 mm of the reference surface."""
+    steps = relief(lambda x, y: np.where(np.sin(2 * np.pi * x / 0.03) > 0, 0.02, -0.02))
+    cube = item("T2", {"v00": bumpy(), "v01": steps}, RELIEF_CAMERA, None, ripples())
+    with pytest.raises(
+        RegistrationError,
+        match=r"^item 'T2', view 'v01': none of the \d coarse poses estimated from the clouds could be refined; the "
+        r"first: item 'T2', view 'v01': only 0 of the view's points lie on the reference surface .*too few to refine "
+        r"its pose; do the views show one surface\? give them poses \(method='poses'\) or use method='homography'$",
+    ):
+        registration_maps(cube, method="clouds")
+
+
+def test_the_clouds_refuse_a_view_that_shares_no_cell_with_the_reference(monkeypatch):
+    """Where every peak of the height maps' correlation puts the view beyond the reference's cells (here the
+    correlation is made to say so), there is no coarse pose to refine."""
+    monkeypatch.setattr(cv2, "phaseCorrelate", lambda first, second, window: ((1e4, 1e4), 1.0))
+    cube = item("T3", {"v00": bumpy(), "v01": bumpy()}, RELIEF_CAMERA, None, ripples())
+    with pytest.raises(
+        RegistrationError,
+        match=r"^item 'T3', view 'v01': the view's surface does not overlap the reference view's \(no cell of both "
+        r"height maps at any coarse pose\): do the views show one surface\? give them poses \(method='poses'\)$",
+    ):
+        registration_maps(cube, method="clouds")
+
+
+def shuffled(texture: np.ndarray, block: int) -> np.ndarray:
+    """``texture`` cut into ``block`` px squares put back in a random order."""
+    height, width = texture.shape
+    corners = [(row, col) for row in range(0, height, block) for col in range(0, width, block)]
+    out = np.empty_like(texture)
+    for (row, col), chosen in zip(corners, np.random.default_rng(0).permutation(len(corners))):
+        source_row, source_col = corners[chosen]
+        out[row : row + block, col : col + block] = texture[
+            source_row : source_row + block, source_col : source_col + block
+        ]
+    return out
+
+
+def speckle() -> tuple[np.ndarray, np.ndarray]:
+    """xyz (120, 160, 3) of a plane seen straight on and a fine random intensity texture on it."""
+    rows, cols = np.mgrid[0:120, 0:160]
+    xyz = np.stack([(cols - 80) * PITCH, (rows - 60) * PITCH, np.full(rows.shape, 0.5)], axis=-1)
+    noise = np.random.default_rng(1).uniform(200, 900, rows.shape).astype(np.float32)
+    return xyz, cv2.GaussianBlur(noise, (0, 0), 1.5)
+
+
+def test_a_homography_refuses_matches_that_fit_no_single_homography():
+    """The second view shows the first's texture in 20 px squares shuffled: ~200 matches, each square's few agree."""
+    xyz, texture = speckle()
+    cube = item("Q1", {"v00": xyz, "v01": xyz})
+    cube["intensity"].values[:] = np.stack([texture, shuffled(texture, 20)])
+    with pytest.raises(
+        RegistrationError,
+        match=r"^item 'Q1', view 'v01' \(reference view 'v00'\): only \d+ of \d+ matches fit one homography "
+        r"\(threshold 1\.5 px; min_inliers=12\): the surface may not be planar or the matches are wrong",
+    ):
+        registration_maps(cube, method="homography")
+    cube["intensity"].values[1] = texture
+    assert registration_maps(cube, method="homography").attrs["method"] == "homography"  # the same texture registers
+
+
+def test_registration_refuses_partial_poses_and_a_roi_off_the_grid():
+    xyz, texture = speckle()
+    cube = item("Q2", {"v00": xyz, "v01": xyz, "v02": xyz}, poses=[np.eye(4), None, np.eye(4)])
+    with pytest.raises(
+        RegistrationError, match=r"^item 'Q2': method='poses' needs a pose for every view, but views \['v01'\] carry "
+    ):
+        registration_maps(cube, method="poses")
+    cube["intensity"].values[:] = texture
+    with pytest.raises(
+        RegistrationError,
+        match=r"^item 'Q2': roi \{'y': \[200, 210\], 'x': \[0, 10\]\} does not overlap the grid \(sensor rows 0..119, "
+        r"columns 0..159\)$",
+    ):
+        registration_maps(cube, method="homography", roi={"y": [200, 210], "x": [0, 10]})

@@ -1096,7 +1096,10 @@ def _coarse_transforms(reference, view, reference_frame, view_frame, tolerance: 
             transform = frames[1] @ motion @ np.linalg.inv(frames[0])
             candidates.append((transform, {"coarse_turn_deg": float(turn % 360.0), "coarse_response": float(response)}))
     if not candidates:
-        raise RegistrationError(f"{where}: the view's surface does not overlap the reference view's")
+        raise RegistrationError(
+            f"{where}: the view's surface does not overlap the reference view's (no cell of both height maps at any "
+            f"coarse pose): do the views show one surface? give them poses (method='poses')"
+        )
     return candidates
 
 
@@ -1167,6 +1170,11 @@ def _pose_refiner(ingest, xyz, distance, points, ref, grid, opts, camera, record
     origin = (grid[1][0], grid[0][0])
     correlation = [_correlated(blur, stride) for blur in _REFINE_LEVELS]
     spread = _PRIOR if recorded else _COARSE_PRIOR
+    advice = (
+        "check the view and its pose, or map with the recorded poses (refine=False)"
+        if recorded
+        else "do the views show one surface? give them poses (method='poses') or use method='homography'"
+    )
     prior = 1.0 / np.repeat([np.deg2rad(spread[0]), spread[1]], 3) ** 2
 
     @cache
@@ -1206,14 +1214,12 @@ def _pose_refiner(ingest, xyz, distance, points, ref, grid, opts, camera, record
         if info["pairs"] < _MIN_PAIRS:
             raise RegistrationError(
                 f"{where}: only {info['pairs']} of the view's points lie on the reference surface within "
-                f"max(tolerance, relative * range): too few to refine its pose; check the pose, or map with the "
-                f"recorded poses (refine=False)"
+                f"max(tolerance, relative * range): too few to refine its pose; {advice}"
             )
         if not info["converged"]:
             raise RegistrationError(
                 f"{where}: the pose refinement did not converge in {info['iterations']} iterations "
-                f"(correction so far {moved['correction_mm']:.2f} mm, {moved['correction_deg']:.3f} deg); "
-                f"check the view, or map with the recorded poses (refine=False)"
+                f"(correction so far {moved['correction_mm']:.2f} mm, {moved['correction_deg']:.3f} deg); {advice}"
             )
         bounded = (
             moved["correction_mm"] <= 1e3 * opts["max_translation"] and moved["correction_deg"] <= opts["max_rotation"]
