@@ -572,6 +572,21 @@ def test_scenes_without_specimens_or_extra_training_are_refused_before_any_job(c
     )
 
 
+def test_surffin_check_reads_every_view_s_pixels(campaign, capsys):
+    root, doc = campaign
+    write_yaml(root, doc)
+    camp = read_campaign(root)
+    views = [*(view for item in camp.items.values() for view in item.views), *camp.calibration.wall]
+    views += camp.calibration.reference.views
+    assert main(["check", str(root)]) == 0
+    assert f"is valid (the pixels of its {len(views)} view files read)" in capsys.readouterr().out
+    arrays = dict(np.load(views[0]))
+    arrays["intensity"][np.isfinite(arrays["xyz"]).all(axis=-1)] = -2.0
+    np.savez(views[0], **arrays)
+    assert main(["check", str(root)]) == 2
+    assert f"{views[0]}: intensity is NaN, infinite or negative on " in capsys.readouterr().err
+
+
 # --- an external calibration store acquired with other settings ------------------------------------------
 
 

@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
 
 import dask
 import dask.array
@@ -27,7 +28,7 @@ from surffin.pipeline.jobs import dask_scheduler, in_worker, job_seconds, loggin
 from surffin.pipeline.parameters import read_config
 from surffin.pipeline.run import run_calibration, run_ingest, run_stage
 from surffin.pipeline.table import STAGES, input_paths
-from surffin.pipeline.workflow import Plan
+from surffin.pipeline.workflow import CHECKED_VIEWS, Plan
 from surffin.simulate.presets import PRESETS
 
 CHUNKS = {"y": 32, "x": 32}
@@ -201,6 +202,45 @@ def test_a_views_sidecars_are_inputs_of_the_jobs_that_read_it(tiny_campaign, tmp
     ]
     assert str(settings) in plan.calibration_views()
     assert plan.item_views("S1") == [str(path) for path in camp.items["S1"].views]
+
+
+def broken_intensity(view: Path, pixels: int) -> None:
+    """Rewrite npz ``view`` with a negative intensity on its first ``pixels`` valid pixels."""
+    arrays = dict(np.load(view))
+    valid = np.flatnonzero(np.isfinite(arrays["xyz"]).all(axis=-1).ravel() & (arrays["xyz"][..., 2].ravel() > 0))
+    arrays["intensity"].reshape(-1)[valid[:pixels]] = -1.0
+    np.savez(view, **arrays)
+
+
+def test_the_plan_reads_every_view_s_pixels_once_and_again_when_the_file_changes(tiny_campaign, tmp_path):
+    raw = tmp_path / "raw"
+    shutil.copytree(tiny_campaign, raw)
+    config = {**read_config(), "campaign": str(raw), "processed": str(tmp_path / "out")}
+    plan = Plan.read(raw, config)
+    camp = plan.campaign
+    every = [*(v for item in camp.items.values() for v in item.views), *camp.calibration.wall]
+    every += [*camp.calibration.reference.views, *plan.repeat.wall, *plan.repeat.reference.views]
+    assert set(plan.checked["views"]) == {str(view) for view in every}
+    assert not (tmp_path / "out").exists()  # reading a plan writes nothing
+    plan.keep_checked()
+    record = json.loads((tmp_path / "out" / CHECKED_VIEWS).read_text())
+    assert record == plan.checked and record["camera"] == camp.camera.settings
+    scene, wall = camp.scenes["T1"].views[1], plan.repeat.wall[0]
+    # a recorded file of the same size and time is not read again: broken pixels there pass ...
+    stat = scene.stat()
+    broken_intensity(scene, 7)
+    assert scene.stat().st_size == stat.st_size
+    os.utime(scene, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    Plan.read(raw, config)
+    # ... but a file that changed is read, and every broken one is named with its problem
+    os.utime(scene)
+    broken_intensity(wall, 3)
+    with pytest.raises(surffin.ViewFileError) as raised:
+        Plan.read(raw, config)
+    message = str(raised.value)
+    assert message.startswith(f"2 of {len(every)} view files break the campaign contract:\n")
+    assert f"{scene}: intensity is NaN, infinite or negative on 7 of " in message
+    assert f"{wall}: intensity is NaN, infinite or negative on 3 of " in message
 
 
 def test_the_plan_refuses_a_calibration_of_another_camera(tiny_campaign, tmp_path):

@@ -275,6 +275,18 @@ def test_bad_campaign_fails_before_any_job_naming_the_file(tiny_campaign, tmp_pa
     assert not (tmp_path / "processed").exists()
 
 
+def test_a_view_with_broken_pixels_fails_before_any_job_naming_the_file(tiny_campaign, tmp_path, snakemake):
+    shutil.copytree(tiny_campaign, tmp_path / "raw")
+    view = surffin.read_campaign(tmp_path / "raw").items["T1"].views[2]
+    arrays = dict(np.load(view))
+    arrays["intensity"][np.isfinite(arrays["xyz"]).all(axis=-1)] = np.nan
+    np.savez(view, **arrays)
+    run = snakemake(tmp_path)
+    assert run.returncode != 0
+    assert f"{view}: intensity is NaN, infinite or negative on " in run.stderr + run.stdout
+    assert not (tmp_path / "processed").exists()
+
+
 @pytest.mark.slow  # a full snakemake run of the tiny campaign
 def test_lint_is_clean(done, snakemake):
     run = snakemake(done, "--lint")

@@ -57,12 +57,15 @@ __all__ = [
     "Calibration",
     "Campaign",
     "read_campaign",
+    "check_pixels",
     "read_truth",
 ]
 
 CAMPAIGN_FILE = "campaign.yaml"
 MIN_VIEWS = 2
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
+#: Broken view files a failed :func:`check_pixels` lists (then how many more).
+SHOWN_BROKEN = 20
 
 _UNITS = ("m", "mm")
 _DISTORTION_SIZES = (4, 5, 8)
@@ -295,6 +298,55 @@ def read_campaign(
         return _Builder.for_campaign(yaml_path, entries, check_views).campaign(entries, require_calibration)
     except _Invalid as exc:
         raise CampaignError(f"{yaml_path}: {exc.key}: {exc.message}") from exc.__cause__
+
+
+def check_pixels(campaign: Campaign, views, known: Mapping | None = None) -> dict:
+    """Read view files' pixels for the contract's pixel rules, which their headers cannot tell.
+
+    Intensity NaN, infinite or negative on a pixel whose xyz is valid, and a view without a valid
+    pixel, are refused (:func:`~surffin.io.viewfile.check_view` with ``pixels``).
+
+    Parameters
+    ----------
+    campaign : Campaign
+        Its camera decodes the files.
+    views : iterable of path
+        The view files.
+    known : mapping, optional
+        A record this function returned before: the files it lists with their present size and
+        modification time, read with the same camera settings, are not read again.
+
+    Returns
+    -------
+    dict
+        The record: ``camera`` (its settings) and ``views`` (path -> [size, modification time in ns]).
+
+    Raises
+    ------
+    ViewFileError
+        Naming every broken file and its problem (at most :data:`SHOWN_BROKEN`, then how many more).
+    """
+    camera = campaign.camera.settings
+    recorded = known["views"] if known and known.get("camera") == camera else {}
+    checked, broken = {}, []
+    for path in dict.fromkeys(str(view) for view in views):
+        stat = Path(path).stat()
+        stamp = [stat.st_size, stat.st_mtime_ns]
+        if recorded.get(path) != stamp:
+            try:
+                check_view(path, **campaign.camera.view_kwargs, pixels=True)
+            except ViewFileError as error:
+                broken.append(str(error))
+                continue
+        checked[path] = stamp
+    if broken:
+        more = f"\n... and {len(broken) - SHOWN_BROKEN} more" if len(broken) > SHOWN_BROKEN else ""
+        raise ViewFileError(
+            f"{len(broken)} of {len(checked) + len(broken)} view files break the campaign contract:\n"
+            + "\n".join(broken[:SHOWN_BROKEN])
+            + more
+        )
+    return {"camera": camera, "views": checked}
 
 
 def read_truth(path: str | Path, *, width: int, height: int) -> tuple[np.ndarray, list[str]]:

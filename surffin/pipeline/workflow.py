@@ -9,25 +9,39 @@ rules' ``params``: a change to one reruns the jobs that read it.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
+from pathlib import Path
 
 from surffin.analysis.diagnostics import SPECIMEN_STORES, representative_specimens
 from surffin.errors import CampaignError
-from surffin.io.campaign import Calibration, Campaign, read_campaign
+from surffin.io.campaign import Calibration, Campaign, check_pixels, read_campaign
+from surffin.io.files import write_json
 from surffin.io.viewfile import view_sidecars
 from surffin.method.calibration import calibration_set, check_calibration
 from surffin.method.roughness import MIN_SPECIMENS
 from surffin.pipeline.parameters import aoi_parameters, feature_parameters, registration_parameters
 from surffin.pipeline.table import output_path
 
-__all__ = ["Plan"]
+__all__ = ["Plan", "CHECKED_VIEWS"]
+
+#: Under the processed folder: the view files whose pixels were checked, their sizes and times.
+CHECKED_VIEWS = "checked_views.json"
 
 
 def _with_sidecars(views) -> list[str]:
     # A view's pose and settings sidecars are inputs of the jobs that read it: editing one reruns them.
     return [str(path) for view in views for path in (view, *view_sidecars(view))]
+
+
+def _record(config: Mapping) -> dict | None:
+    """Return the processed folder's record of checked view files; None when absent or unreadable (all are read)."""
+    try:
+        return json.loads(Path(config["processed"], CHECKED_VIEWS).read_text())
+    except (OSError, ValueError):
+        return None
 
 
 @dataclass(frozen=True)
@@ -42,21 +56,27 @@ class Plan:
         The workflow configuration.
     repeat : Calibration or None
         The repeat calibration set, when configured and present.
+    checked : dict
+        What :func:`~surffin.io.campaign.check_pixels` returned for every view file a run reads.
     """
 
     campaign: Campaign
     config: Mapping
     repeat: Calibration | None = None
+    checked: dict = field(default_factory=dict)
 
     @classmethod
     def read(cls, path, config: Mapping) -> Plan:
         """Read and check the campaign at ``path`` (and ``calibration_store``, the repeat set) for ``config``.
 
+        Every view file's pixels are read (:func:`~surffin.io.campaign.check_pixels`), but for those
+        whose size and time the processed folder's :data:`CHECKED_VIEWS` records (:meth:`keep_checked`).
+
         Raises
         ------
         SurffinError
-            The campaign, or the calibration store it is given, is not usable, or the campaign has scenes
-            but nothing to train their classifier on (no specimens, no ``extra_training`` stores).
+            The campaign, a view file, or the calibration store it is given, is not usable, or the campaign
+            has scenes but nothing to train their classifier on (no specimens, no ``extra_training`` stores).
         """
         camp = read_campaign(path, require_calibration=config["calibration_store"] is None)
         if camp.scenes and not camp.specimens and not config["extra_training"]:
@@ -71,7 +91,16 @@ class Plan:
         folders = config["calibration_repeat"]
         present = folders is not None and camp.calibration is not None
         present = present and all((camp.root / folder).is_dir() for folder in folders.values())
-        return cls(camp, config, calibration_set(camp, folders["wall"], folders["reference"]) if present else None)
+        repeat = calibration_set(camp, folders["wall"], folders["reference"]) if present else None
+        sets = [item.views for item in camp.items.values()]
+        sets += [(*cal.wall, *cal.reference.views) for cal in (camp.calibration, repeat) if cal is not None]
+        checked = check_pixels(camp, (view for views in sets for view in views), _record(config))
+        return cls(camp, config, repeat, checked)
+
+    def keep_checked(self) -> None:
+        """Record the checked view files (:data:`CHECKED_VIEWS`): the next run reads only new or changed ones."""
+        if self.checked != _record(self.config):
+            write_json(Path(self.config["processed"], CHECKED_VIEWS), self.checked)
 
     # --- paths -------------------------------------------------------------------------------
 

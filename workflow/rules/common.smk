@@ -54,7 +54,7 @@ wildcard_constraints:
 
 
 def plan():
-    """The campaign's Plan, read once; the default campaign is rendered first (checkpoint) when absent."""
+    """The campaign's Plan, read once (every view file checked); the default campaign is rendered first when absent."""
     if not _PLAN:
         if CAMPAIGN.resolve() == DEFAULT_CAMPAIGN and not (CAMPAIGN / "campaign.yaml").exists():
             checkpoints.default_campaign.get()
@@ -62,6 +62,8 @@ def plan():
             _PLAN.append(Plan.read(CAMPAIGN, config))
         except SurffinError as exc:
             raise WorkflowError(str(exc)) from None
+        if not workflow.dryrun:
+            _PLAN[0].keep_checked()
     return _PLAN[0]
 
 
