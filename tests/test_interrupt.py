@@ -19,6 +19,8 @@ from pathlib import Path
 import pytest
 import xarray as xr
 
+from surffin.pipeline.workflow import CHECKED_VIEWS
+
 REPO = Path(__file__).resolve().parents[1]
 TIMEOUT = 300
 #: The only names a killed write may leave beside a store: ``.<store>.partial-<token>``.
@@ -72,10 +74,11 @@ def kill_after_first_store(run: subprocess.Popen, processed: Path) -> None:
 
 
 def assert_only_stores_and_partials(processed: Path) -> None:
-    """Besides finished stores (and summary.json), only ``.<store>.partial-<token>`` folders."""
+    """Besides finished stores (and summary.json, the checked views' record), only ``.<store>.partial-<token>``."""
     for entry in entries(processed):
         finished = entry.suffix == ".zarr" and not entry.name.startswith(".")
-        assert finished or entry.name == "summary.json" or PARTIAL.fullmatch(entry.name), entry
+        finished = finished or entry.name in ("summary.json", CHECKED_VIEWS)
+        assert finished or PARTIAL.fullmatch(entry.name), entry
 
 
 def assert_identical_stores(stores: list[Path], processed: Path, reference: Path) -> None:
