@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 __all__ = ["Roi"]
@@ -33,6 +33,10 @@ class Roi:
         """``(rows, columns)`` in pixels."""
         return self.y[1] - self.y[0], self.x[1] - self.x[0]
 
+    def grown(self, margin: int) -> Roi:
+        """Return this roi with ``margin`` more pixels on every side (clip it to the grid it is on)."""
+        return Roi((self.y[0] - margin, self.y[1] + margin), (self.x[0] - margin, self.x[1] + margin))
+
     def clip(self, other: Roi) -> Roi:
         """Return the part of this roi inside ``other``.
 
@@ -53,6 +57,11 @@ class Roi:
         if roi is None or isinstance(roi, Roi):
             return roi
         return cls(tuple(roi["y"]), tuple(roi["x"]))
+
+    @classmethod
+    def spanning(cls, y: Sequence[int], x: Sequence[int]) -> Roi:
+        """Return the smallest roi that holds the sensor rows ``y`` and columns ``x`` (a grid's coordinates)."""
+        return cls((int(min(y)), int(max(y)) + 1), (int(min(x)), int(max(x)) + 1))
 
     def as_mapping(self) -> dict[str, list[int]]:
         """Return the ``{"y": [a, b], "x": [c, d]}`` form, for JSON and YAML."""

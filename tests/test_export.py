@@ -116,8 +116,11 @@ def test_export_of_a_run(tiny_run, tmp_path):
         # CloudCompare reads scalar_* as scalar fields; Open3D keeps them as attributes
         assert names == ["x", "y", "z", *(f"scalar_{field}" for field in PLY_FIELDS)]
         ingest = open_store(processed / "ingest" / f"{name}.zarr")
-        reference = ingest.sel(view=ingest.attrs["reference_view"])
+        grid = open_store(processed / "features" / f"{name}.zarr")
+        # the reference view's valid points where the item has features: a specimen's roi and margin, a scene's crop
+        reference = ingest.sel(view=ingest.attrs["reference_view"], y=grid["y"], x=grid["x"])
         assert vertex.count == int(reference["valid"].sum())
+        assert (reference.sizes["y"] < ingest.sizes["y"]) == (name != "T1")
         if name == "T1":  # posed views: the points are in the world frame
             pose = reference["pose"].values
             first = reference["xyz"].values[reference["valid"].values][0]

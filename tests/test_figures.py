@@ -274,7 +274,7 @@ def test_feature_figure_keeps_its_scales_roi_and_legend(tmp_path, monkeypatch):
     assert all(any(isinstance(p, Rectangle) and p.get_linestyle() == "--" for p in ax.patches) for ax in panels)
     titles = [ax.get_title() for ax in panels]
     assert titles[0] == "R0: reflectance at normal incidence"  # linear: no claim of a log scale
-    assert titles[3] == "standard uncertainty of the smoothed R0 (log scale)"
+    assert titles[3] == "uncertainty of the smoothed R0 (log scale)"
     bars = {ax.get_ylabel(): ax for ax in fig.axes if ax.get_ylabel().endswith(" (1)")}
     assert sorted(bars) == sorted(f"{name} (1)" for name in names)
     for name in names:  # each colour scale readable: at least two labelled values; the maps of spread logarithmic

@@ -21,9 +21,11 @@ import xarray as xr
 import yaml
 
 import surffin
+from surffin.io.ingest import ingest_item
 from surffin.io.store import open_store
-from surffin.method.features import variability
-from surffin.method.stages import ITEM_CHAIN, aoi_stage, process_item
+from surffin.method import stages
+from surffin.method.features import select_roi, variability
+from surffin.method.stages import ITEM_CHAIN, aoi_stage, features_stage, process_item
 from surffin.pipeline.jobs import dask_scheduler, in_worker, job_seconds, logging_to
 from surffin.pipeline.parameters import read_config
 from surffin.pipeline.run import run_calibration, run_ingest, run_stage
@@ -68,6 +70,35 @@ def test_the_jobs_write_what_the_chain_in_memory_computes(campaign, tmp_path, it
         assert written.attrs["surffin_code_version"] == STAGES[step.name].version
     assert open_store(stores["features"])["R0"].notnull().mean() > 0.5
     assert open_store(stores["ingest"]).attrs["surffin_code_version"] == STAGES["ingest"].version
+    # a specimen's registration and features cover its roi and the smoothing's margin, a scene's its whole crop
+    roi = camp.items[item].roi
+    grid = camp.crop if roi is None else roi.grown(PARAMS["size"] // 2).clip(camp.crop)
+    for name in ("registered", "features"):
+        written = open_store(stores[name])
+        assert (written["y"].values[[0, -1]].tolist(), written["x"].values[[0, -1]].tolist()) == (
+            [grid.y[0], grid.y[1] - 1],
+            [grid.x[0], grid.x[1] - 1],
+        )
+
+
+def test_a_roi_changes_no_value_inside_it(campaign, monkeypatch):
+    # the chain on the roi and its margin against the same chain on the whole crop: bit for bit inside the roi
+    camp, calibration = campaign
+    roi = camp.items["S1"].roi
+    assert roi.grown(PARAMS["size"] // 2).clip(camp.crop).shape < camp.crop.shape
+    ingest, calibration = ingest_item(camp, "S1"), open_store(calibration).load()
+    restricted = process_item(ingest, calibration, roi=roi, **PARAMS)
+    with pytest.raises(ValueError, match="does not hold"):
+        features_stage(restricted["registered"], restricted["reflectance"], restricted["aoi"], roi=roi, size=9)
+    monkeypatch.setattr(stages, "feature_window", lambda roi, size, grid: grid)
+    whole = process_item(ingest, calibration, roi=roi, **PARAMS)
+    assert whole["features"].sizes == dict(zip("yx", camp.crop.shape))
+    for name in ("registered", "features"):
+        inside, expected = select_roi(restricted[name], roi), select_roi(whole[name], roi)
+        assert set(inside.data_vars) == set(expected.data_vars)
+        for variable in inside.data_vars:
+            np.testing.assert_array_equal(inside[variable].values, expected[variable].values, err_msg=variable)
+    assert restricted["features"].attrs["uncertainty_inflation"] == whole["features"].attrs["uncertainty_inflation"]
 
 
 def test_run_stage_refuses_what_is_no_stage_and_wrong_stores(campaign, tmp_path):
@@ -177,6 +208,8 @@ def test_the_plan_names_each_job_s_files_from_the_table(tiny_campaign, tmp_path)
     assert plan.output("summary") in results and plan.output("labels", "T1") in results
     assert plan.item_views("S2") == [str(path) for path in camp.items["S2"].views]
     assert plan.registration_parameters("S1")["roi"] == camp.items["S1"].roi.as_mapping()
+    assert plan.registration_parameters("S1")["size"] == config["features"]["smoothing"]
+    assert "size" not in plan.registration_parameters("T1")  # no roi: no margin, the smoothing does not rerun it
     assert plan.repeat is not None  # the tiny preset renders a repeat calibration set
     assert plan.specimens_by_roughness()[0] == min(
         camp.specimens, key=lambda name: camp.specimens[name].roughness_mm or float("inf")

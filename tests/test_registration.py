@@ -136,6 +136,25 @@ def test_reference_view_maps_to_itself(planar, method):
     json.dumps(maps.attrs)  # storable as zarr attributes
 
 
+@pytest.mark.parametrize(("scene", "method"), [("stepped", "poses"), ("planar", "homography")])
+def test_a_window_is_mapped_as_on_the_whole_grid(request, scene, method):
+    # the poses and homographies come from the whole grid all the same: only the maps shrink
+    ingest = request.getfixturevalue(scene).ingest
+    with pytest.raises(ValueError, match="holds no pixel of the grid"):
+        registration_maps(ingest, method=method, window=Roi((0, 8), (12, 148)))
+    whole = registration_maps(ingest, method=method)
+    part = registration_maps(ingest, method=method, window=Roi((30, 71), (50, 400)))  # clipped to the grid
+    assert part["y"].values[[0, -1]].tolist() == [30, 70] and part["x"].values[[0, -1]].tolist() == [50, 147]
+    for name in ("map_x", "map_y"):
+        np.testing.assert_array_equal(part[name].values, whole[name].sel(y=part["y"], x=part["x"]).values)
+        assert np.isfinite(part[name].values).mean() > 0.5
+    for view, info in whole.attrs["diagnostics"].items():
+        moved = ("correction", "homography", "inliers")
+        assert {key: info[key] for key in moved if key in info} == {
+            key: part.attrs["diagnostics"][view][key] for key in moved if key in info
+        }
+
+
 @pytest.mark.parametrize("method", ["poses", "homography"])
 def test_maps_to_and_from_another_reference_round_trip(planar, method):
     forward = registration_maps(planar.ingest, method=method).sel(view=["v01"])
@@ -673,11 +692,13 @@ def test_clouds_register_without_poses(robot):
 def test_clouds_tell_a_symmetric_relief_by_its_texture(stepped):
     # a square block on a board: the relief alone fits four turns; the texture picks the right one
     ingest = stepped.ingest.drop_vars("pose")
-    roi = {"y": [30, 90], "x": [40, 120]}  # for the homography only: the stage leaves it out
+    roi = {"y": [30, 90], "x": [40, 120]}  # the poses come from the whole grid; the maps cover the roi and a margin
     # refine=False: for the recorded poses only; estimated ones are always refined
-    registered = registration_stage(ingest, *stage_inputs(ingest), method="clouds", roi=roi, refine=False)
+    registered = registration_stage(ingest, *stage_inputs(ingest), method="clouds", roi=roi, size=5, refine=False)
     assert registered.attrs["method"] == "clouds" and registered.attrs["camera_model"]["source"] == "estimated"
-    error = map_error(registered, stepped.truth_x, stepped.truth_y)
+    assert (registered["y"].values[[0, -1]].tolist(), registered["x"].values[[0, -1]].tolist()) == ([28, 91], [38, 121])
+    window = np.ix_(registered["y"].values - ingest["y"].values[0], registered["x"].values - ingest["x"].values[0])
+    error = map_error(registered, stepped.truth_x[:, *window], stepped.truth_y[:, *window])
     for index in (1, 2):
         assert registered.attrs["diagnostics"][f"v{index:02d}"]["candidates"] >= 2
         assert np.nanmedian(error[index]) < 0.1

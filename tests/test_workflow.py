@@ -73,11 +73,17 @@ def test_every_store_follows_the_contract(done, tmp_path):
             "registered": {"reflectance", "aoi"},
             "features": {"R0", "n", "variability", "R0_uncertainty", "n_uncertainty"},
         }
+        # a specimen is registered and fitted on its roi and the margin the 7 x 7 smoothing reads
+        window = camp.crop if item.roi is None else item.roi.grown(3).clip(camp.crop)
         for stage, variables in expected.items():
             ds = open_store(processed / stage / f"{name}.zarr")
             assert variables <= set(ds.data_vars), (stage, name)
             assert ds.attrs["surffin_version"] == surffin.__version__
-            assert ds["y"].values[0] == camp.crop.y[0] and ds["x"].values[-1] == camp.crop.x[1] - 1
+            grid = window if stage in ("registered", "features") else camp.crop
+            assert (ds["y"].values[[0, -1]].tolist(), ds["x"].values[[0, -1]].tolist()) == (
+                [grid.y[0], grid.y[1] - 1],
+                [grid.x[0], grid.x[1] - 1],
+            ), (stage, name)
             for var in variables:
                 assert "long_name" in ds[var].attrs, (stage, var)
         assert list(open_store(processed / "aoi" / f"{name}.zarr")["view"].values) == list(item.view_stems)
@@ -144,10 +150,12 @@ def test_nothing_left_after_a_complete_run(done, planned_jobs):
 
 
 @pytest.mark.slow  # a full snakemake run of the tiny campaign
-def test_smoothing_change_reruns_features_and_below_only(done, planned_jobs):
+def test_smoothing_change_reruns_the_specimens_registration_features_and_below_only(done, planned_jobs):
+    # a specimen's registration covers its roi and the margin the smoothing reads; the scene's the whole crop
     jobs = planned_jobs(done, overrides={"features": {"smoothing": 5}})
     figures = {"item_figures": 5, "classification_figures": 1, "scene_figures": 1}
     assert jobs == {
+        "registration": 4,
         "features": 5,
         "training": 1,
         "labels": 1,

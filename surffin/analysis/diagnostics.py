@@ -486,10 +486,9 @@ def _with_calibration(
     The item chain after the AOI (:func:`surffin.method.stages.process_item`),
     but the views are warped by the registration maps of ``first["registered"]``:
     :func:`~surffin.method.stages.registration_stage` makes them from the
-    ingest alone, so they are those it would make again. With a roi, only the
-    roi and a margin of the smoothing window are registered and fitted: the
-    fit is per pixel and the smoothing of R0 and n reaches half a window, so
-    the roi's pixels are those of the whole grid.
+    ingest alone, so they are those it would make again; with a roi, they cover
+    the roi and the margin its features read
+    (:func:`~surffin.method.features.feature_window`).
 
     Parameters
     ----------
@@ -504,16 +503,12 @@ def _with_calibration(
     Returns
     -------
     dict
-        ``registered`` and ``features``, over the roi and its margin.
+        ``registered`` and ``features``, on the grid of ``first["registered"]``.
     """
-    from surffin.method.features import DEFAULT_SIZE, select_roi
     from surffin.method.registration import register
     from surffin.method.stages import ITEM_CHAIN, features_stage, reflectance_stage
 
     ingest, aoi, maps = first["ingest"], first["aoi"], first["registered"][["map_x", "map_y"]]
-    if roi is not None:
-        margin = params.get("size", DEFAULT_SIZE)
-        maps = select_roi(maps, Roi((roi.y[0] - margin, roi.y[1] + margin), (roi.x[0] - margin, roi.x[1] + margin)))
     reflectance = reflectance_stage(ingest, aoi, calibration).compute()
     views = xr.Dataset({"reflectance": reflectance["reflectance"], "aoi": aoi["aoi"]}).compute()
     registered = register(views, maps.compute())

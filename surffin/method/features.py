@@ -51,6 +51,7 @@ __all__ = [
     "variance_inflation",
     "local_std",
     "select_roi",
+    "feature_window",
     "views_by_incidence",
     "first_available",
     "variability",
@@ -735,6 +736,31 @@ def select_roi(obj: xr.DataArray | xr.Dataset, roi: Roi) -> xr.DataArray | xr.Da
         contiguous = inside[-1] - inside[0] + 1 == inside.size
         index[dim] = slice(inside[0], inside[-1] + 1) if contiguous else inside
     return obj.isel(index)
+
+
+def feature_window(roi: Roi, size: int, grid: Roi) -> Roi:
+    """Return the reference pixels that :func:`features` of the pixels in ``roi`` read: ``roi`` and ``size // 2`` more.
+
+    The fit is per pixel and the variability per view, on that view's own grid, warped pixel by pixel; the
+    smoothing of R0 and n and the propagation of their uncertainties read ``size // 2`` pixels around each
+    pixel and treat the grid's border like a hole. On this window, clipped to the item's ``grid``, every
+    pixel of ``roi`` sees what it sees on the whole grid.
+
+    Parameters
+    ----------
+    roi : Roi
+        The pixels whose features are wanted (a specimen's roi).
+    size : int
+        Side of the smoothing window, pixels (:func:`smooth`).
+    grid : Roi
+        The item's whole reference grid (its crop).
+
+    Raises
+    ------
+    ValueError
+        ``roi`` does not overlap ``grid``.
+    """
+    return roi.grown(check_size(size) // 2).clip(grid)
 
 
 def views_by_incidence(aoi: xr.DataArray, region: Roi | None = None) -> list:

@@ -1,10 +1,10 @@
 """Co-registration: every view of an item on the reference view's pixel grid (METHOD.md step 4).
 
 :func:`registration_maps` finds, for every pixel of the reference grid (the item's cropped
-sensor grid), the sub-pixel sensor position ``(map_x, map_y)`` in each view where the same
-surface point is seen; :func:`warp` resamples any (view, y, x) image there (NaN-aware
-bilinear), :func:`register` warps an item's reflectance and AOI, and :func:`registration_error`
-scores maps against the synthetic camera's truth. The methods:
+sensor grid, or a window of it), the sub-pixel sensor position ``(map_x, map_y)`` in each view
+where the same surface point is seen; :func:`warp` resamples any (view, y, x) image there
+(NaN-aware bilinear), :func:`register` warps an item's reflectance and AOI, and
+:func:`registration_error` scores maps against the synthetic camera's truth. The methods:
 
 - ``"poses"``: the reference pixel's 3-D point (range averaged over its surface neighbours) goes
   through the two poses and the camera model (:class:`~surffin.method.camera_model.CameraModel`:
@@ -33,6 +33,7 @@ import numpy as np
 import xarray as xr
 
 from surffin.errors import RegistrationError
+from surffin.grid import Roi
 from surffin.method.camera_model import CameraModel, fit_camera_model, model_residual
 from surffin.method.geometry import plane_normals
 
@@ -1109,6 +1110,19 @@ def _identity(grid: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarr
     return tuple(np.meshgrid(columns.astype(np.float64), rows.astype(np.float64)))
 
 
+def _part(grid: tuple[np.ndarray, np.ndarray], window: Roi | None, item: str) -> tuple[slice, slice]:
+    """Return the (rows, columns) slices of the grid's pixels inside the sensor ``window``: all without one."""
+    if window is None:
+        return slice(None), slice(None)
+    columns, rows = grid
+    try:
+        inside = window.clip(Roi.spanning(rows, columns))
+    except ValueError as exc:
+        raise ValueError(f"item {item!r}: the window to map holds no pixel of the grid ({exc})") from None
+    first = (rows[0], columns[0])
+    return slice(inside.y[0] - first[0], inside.y[1] - first[0]), slice(inside.x[0] - first[1], inside.x[1] - first[1])
+
+
 def _pose_refiner(ingest, xyz, distance, points, ref, grid, opts, camera, recorded):
     """Build the pose refinement of the poses methods (:func:`_refine_pose`).
 
@@ -1390,8 +1404,10 @@ def _pose_estimator(xyz: np.ndarray, ref: int, views: list, item: str, tolerance
     return checked
 
 
-def _pose_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict, estimate: bool = False):
+def _pose_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict, part, estimate: bool = False):
     """Build the poses methods: a function of a view index giving (col, row, diagnostics), and the camera's attrs.
+
+    The maps cover the ``part`` (rows, columns slices) of the grid; the poses come from all of it.
 
     The views' recorded poses, refined against the reference view when
     ``opts["refine"]``, or with ``estimate`` their poses relative to the
@@ -1413,11 +1429,12 @@ def _pose_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict, esti
     refined = opts["refine"] or estimate  # a coarse estimate alone registers no better than to a few mm
     refine = _pose_refiner(ingest, xyz, distance, points, ref, grid, opts, camera, not estimate) if refined else None
     estimated = _pose_estimator(xyz, ref, views, item, opts["tolerance"], refine) if estimate else None
+    target = (grid[0][part[1]], grid[1][part[0]])
 
     def one(index: int):
         if index == ref:
             unmoved = {"correction_mm": 0.0, "correction_deg": 0.0, "correction": np.eye(4).tolist()}
-            return *_identity(grid), {"mapped": 1.0, "occluded": 0.0, "range_rms": 0.0, **(unmoved if refine else {})}
+            return *_identity(target), {"mapped": 1.0, "occluded": 0.0, "range_rms": 0.0, **(unmoved if refine else {})}
         if estimate:
             transform, found = estimated(index)
         else:
@@ -1425,7 +1442,7 @@ def _pose_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict, esti
             if refine is not None:
                 transform, found = refine(index, transform, f"item {item!r}, view {views[index]!r}")
         col, row, diagnostics = _pose_map(
-            points, transform, camera, distance(index), *grid, opts["tolerance"], opts["relative"]
+            points[part], transform, camera, distance(index), *grid, opts["tolerance"], opts["relative"]
         )
         return col, row, {**diagnostics, **found}
 
@@ -1448,8 +1465,8 @@ def _roi_mask(roi: Mapping | None, grid, item: str) -> np.ndarray | None:
     return inside.astype(np.uint8) * 255
 
 
-def _homography_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict):
-    """Build the homography method: a function of a view index giving (col, row, diagnostics)."""
+def _homography_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict, part):
+    """Build the homography method: a function of a view index giving (col, row, diagnostics) on ``part`` of a grid."""
     views = [str(view) for view in ingest["view"].values]
     intensity = np.asarray(ingest["intensity"].values)
     valid = np.asarray(ingest["valid"].values, dtype=bool)
@@ -1460,10 +1477,11 @@ def _homography_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict
     if roi is not None:
         images[ref] = (images[ref][0], images[ref][1] & roi)
     features = [_keypoints(image, mask, opts["detector"]) for image, mask in images]
+    target = (grid[0][part[1]], grid[1][part[0]])
 
     def one(index: int):
         if index == ref:
-            return *_identity(grid), {"keypoints": len(features[ref][0])}
+            return *_identity(target), {"keypoints": len(features[ref][0])}
         src, dst = _match(features[ref], features[index], norm, opts["ratio"])
         where = f"item {item!r}, view {views[index]!r} (reference view {views[ref]!r})"
         if len(src) < opts["min_matches"]:
@@ -1481,7 +1499,7 @@ def _homography_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict
                 f"planar or the matches are wrong; use method='poses' or lower min_inliers"
             )
         u, v = _apply_homography(matrix, src[inliers, 0], src[inliers, 1])
-        col, row = _apply_homography(matrix, *_identity(grid))
+        col, row = _apply_homography(matrix, *_identity(target))
         _outside_to_nan(col, row, *grid)
         return (
             col,
@@ -1503,7 +1521,7 @@ def _homography_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict
 
 
 def registration_maps(
-    ingest: xr.Dataset, *, method: str = "auto", reference: str | None = None, **options
+    ingest: xr.Dataset, *, method: str = "auto", reference: str | None = None, window: Roi | None = None, **options
 ) -> xr.Dataset:
     """Where each view sees the surface point of every reference pixel.
 
@@ -1524,6 +1542,9 @@ def registration_maps(
     reference : str, optional
         The view whose grid the maps are on; default ``ingest.attrs
         ["reference_view"]``, else the first view.
+    window : Roi, optional
+        The reference pixels to map (sensor ranges, clipped to the grid); default all. The
+        poses and homographies are found on the whole grid all the same: only the maps shrink.
     **options
         Of the method used, with the defaults of :data:`POSE_OPTIONS` and
         :data:`HOMOGRAPHY_OPTIONS`; with ``"auto"`` either set is accepted.
@@ -1548,7 +1569,7 @@ def registration_maps(
     Returns
     -------
     Dataset
-        ``map_x``, ``map_y`` (view, y, x) float32, pixels: sensor column and
+        ``map_x``, ``map_y`` (view, y, x) float32 over the ``window``, pixels: sensor column and
         row in each view of the surface point seen by reference pixel (y, x);
         NaN where that view does not see it (outside its cropped grid, behind
         it, occluded, or, with poses, where the reference pixel has no valid
@@ -1558,7 +1579,7 @@ def registration_maps(
         ``matches`` (after the ratio test), ``inliers``, ``rms`` (inlier
         reprojection, pixels) and ``homography`` (3 x 3, reference sensor
         coordinates to the view's); for ``"poses"`` ``mapped`` and
-        ``occluded`` (fractions of the reference pixels) and ``range_rms``
+        ``occluded`` (fractions of the reference pixels mapped) and ``range_rms``
         (metres, measured minus projected range where mapped: checks the
         poses), and with ``refine`` ``correction`` (4 x 4: the refined
         camera-to-world pose is the recorded one times it; identity for the
@@ -1606,11 +1627,12 @@ def registration_maps(
             f"estimates the poses from the views' clouds"
         )
     grid = (_sensor_indices(ingest["x"], "x"), _sensor_indices(ingest["y"], "y"))
+    part = _part(grid, window, item)
     build = {"poses": _pose_mapper, "clouds": partial(_pose_mapper, estimate=True), "homography": _homography_mapper}
 
     def maps_by(chosen: str):
         opts = _options(chosen, options, auto=method == "auto")
-        mapper, described = build[chosen](ingest, views.index(reference), item, grid, opts)
+        mapper, described = build[chosen](ingest, views.index(reference), item, grid, opts, part)
         return opts, described, *zip(*(mapper(index) for index in range(len(views))))
 
     try:
@@ -1631,7 +1653,7 @@ def registration_maps(
             "map_x": (dims, np.stack(cols).astype(np.float32), _MAP_ATTRS["map_x"]),
             "map_y": (dims, np.stack(rows).astype(np.float32), _MAP_ATTRS["map_y"]),
         },
-        coords={"view": ingest["view"].values, "y": ingest["y"].values, "x": ingest["x"].values},
+        coords={"view": ingest["view"].values, "y": ingest["y"].values[part[0]], "x": ingest["x"].values[part[1]]},
         attrs={
             "item": item,
             "method": chosen,

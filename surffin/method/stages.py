@@ -22,9 +22,11 @@ from surffin.method.calibration import reflectance
 from surffin.method.classify import NOISE_CORRECTED, UNCLASSIFIED, classify, filter_labels, unclassified_counts
 from surffin.method.features import (
     DEFAULT_SIZE,
+    feature_window,
     features,
     first_available,
     residual_correlation,
+    select_roi,
     variability,
     views_by_incidence,
 )
@@ -56,6 +58,11 @@ __all__ = [
 def _item_attrs(ingest: xr.Dataset) -> dict:
     keys = ("item", "kind", "class", "reference_view", "campaign", "camera", "crop")
     return {key: ingest.attrs[key] for key in keys if key in ingest.attrs}
+
+
+def _grid(ds: xr.Dataset) -> Roi:
+    """Return the sensor pixels of a store's (y, x) grid (on the views' own grids: the item's crop)."""
+    return Roi.spanning(ds["y"].values, ds["x"].values)
 
 
 def _single(ds: xr.Dataset) -> xr.Dataset:
@@ -117,6 +124,7 @@ def registration_stage(
     *,
     method: str = "auto",
     roi=None,
+    size: int = DEFAULT_SIZE,
     refine: bool = True,
     max_translation: float = POSE_OPTIONS["max_translation"],
     max_rotation: float = POSE_OPTIONS["max_rotation"],
@@ -129,6 +137,10 @@ def registration_stage(
     ``max_rotation`` (degrees); the corrections are in the attrs
     (``diagnostics``). Poses estimated from the clouds (``"clouds"``) are
     refined too, without those bounds. The homography ignores the three.
+
+    With a ``roi`` (a specimen's pixels), only the roi and the pixels around it that the
+    features of smoothing window ``size`` read there are mapped and warped
+    (:func:`~surffin.method.features.feature_window`); the poses are found as without one.
     """
     roi = Roi.from_mapping(roi)
     options = {}
@@ -137,7 +149,8 @@ def registration_stage(
     if roi is not None and method in ("auto", "homography"):
         # the roi picks the plane a homography registers (a specimen on its board); poses need none
         options["roi"] = {"y": list(roi.y), "x": list(roi.x)}
-    maps = registration_maps(ingest.compute(), method=method, **options)
+    window = None if roi is None else feature_window(roi, size, _grid(ingest))
+    maps = registration_maps(ingest.compute(), method=method, window=window, **options)
     both = xr.Dataset({"reflectance": reflectance["reflectance"], "aoi": aoi["aoi"]})
     registered = register(both.compute(), maps)
     registered.attrs = {**registered.attrs, **_item_attrs(ingest)}
@@ -205,6 +218,17 @@ def _first_variability(
     return first.copy(data=values.reshape(shape)), xr.DataArray(source.reshape(shape), first.coords, first.dims)
 
 
+def _window_of(registered: xr.Dataset, window: Roi) -> xr.Dataset:
+    """Return the part of a registered store inside ``window``; ValueError when it lacks some of it."""
+    part = select_roi(registered, window)
+    if (part.sizes["y"], part.sizes["x"]) != window.shape:
+        raise ValueError(
+            f"item {registered.attrs.get('item', '?')!r}: the registered grid {_grid(registered)} does not hold "
+            f"{window}, the roi and the pixels around it that its features read; register it with the same roi and size"
+        )
+    return part
+
+
 def features_stage(
     registered: xr.Dataset,
     reflectance: xr.Dataset,
@@ -227,15 +251,26 @@ def features_stage(
     noise (``reflectance_noise``), the noise's variance is taken out of the
     variability. ``variability_view`` (y, x) says which view, as a
     position in the attr ``variability_views``. The uncertainties of the smoothed R0 and n account for the
-    spatial correlation of the fit's residuals over the item
+    spatial correlation of the fit's residuals over the item's roi, else over all its pixels
     (:func:`surffin.method.features.residual_correlation`).
+
+    With a roi, the features are computed on the part of the registered grid that those inside
+    the roi read (:func:`~surffin.method.features.feature_window`, what
+    :func:`registration_stage` registers with the same ``size``): inside the roi they are those
+    of the whole grid. A registered grid without all of it is refused (ValueError).
     """
+    roi = Roi.from_mapping(roi)
+    if roi is not None:
+        registered = _window_of(registered, feature_window(roi, size, _grid(aoi)))
     observed = registered[["reflectance", "aoi"]]
     if observed.chunks:  # dask: each pixel's views in one chunk (in memory, an item needs no graph)
         observed = observed.chunk({"view": -1})
     fit = fit_scattering(observed["reflectance"], observed["aoi"], min_views=min_views, min_spread=min_spread).persist()
-    correlation = residual_correlation(registered["reflectance"], registered["aoi"], fit, max_lag=size - 1)
-    order = views_by_incidence(aoi["aoi"], Roi.from_mapping(roi))
+    pixels = registered if roi is None else select_roi(registered, roi)
+    correlation = residual_correlation(
+        pixels["reflectance"], pixels["aoi"], fit.sel(y=pixels["y"], x=pixels["x"]), max_lag=size - 1
+    )
+    order = views_by_incidence(aoi["aoi"], roi)
     warped, source = _first_variability(reflectance, aoi, registered[["map_x", "map_y"]], order, size=variability_size)
     ds = features(fit, warped, size=size, error_correlation=correlation)
     ds["variability_view"] = source.assign_attrs(

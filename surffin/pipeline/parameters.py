@@ -99,9 +99,15 @@ def aoi_parameters(config: Mapping) -> dict:
 
 
 def registration_parameters(config: Mapping) -> dict:
-    """Keyword arguments of :func:`surffin.method.stages.registration_stage` (without the item's roi)."""
+    """Keyword arguments of :func:`surffin.method.stages.registration_stage` (without the item's roi).
+
+    ``size`` is the features' smoothing window: around a roi, what the features there read is registered.
+    """
     keywords = _keywords(config, "registration")
-    return keywords | {"max_translation": keywords["max_translation"] / 1000.0}
+    return keywords | {
+        "max_translation": keywords["max_translation"] / 1000.0,
+        "size": feature_parameters(config)["size"],
+    }
 
 
 def feature_parameters(config: Mapping) -> dict:

@@ -134,8 +134,13 @@ class Plan:
         }
 
     def registration_parameters(self, name: str) -> dict:
-        """Return an item's registration parameters: the configured ones and the item's roi."""
-        return {**registration_parameters(self.config), "roi": self.roi(name)}
+        """Return an item's registration parameters: the configured ones and the item's roi.
+
+        The features' window ``size`` sets the margin registered around a roi: an item without
+        one is not given it, so that a change of the smoothing does not rerun its registration.
+        """
+        params = {**registration_parameters(self.config), "roi": self.roi(name)}
+        return params if params["roi"] is not None else {key: params[key] for key in params if key != "size"}
 
     def feature_parameters(self, name: str) -> dict:
         """Return an item's feature parameters: its roi and the configured ones."""

@@ -548,7 +548,7 @@ def plot_features(
     """Paper Fig. 13: an item's feature images, their uncertainties and the reflectance samples.
 
     Panels: R0, n and variability on the item's reference grid (sensor
-    coordinates, the roi dashed); the standard uncertainties of the smoothed R0
+    coordinates; a specimen's roi, dashed, and its margin); the standard uncertainties of the smoothed R0
     and n (logarithmic colour scale); and the registered reflectance of all
     views against their AOI on a polar plot (pixels of the roi, or of the whole
     image), with the scattering model (eq. 3) at the median R0 and n.
@@ -580,7 +580,7 @@ def plot_features(
         ("n", "n: scattering coefficient", "cividis", _RANGE, False),
         ("variability", "spatial reflectance variability", "inferno", (2, 99.5), True),
         *(
-            (name, f"standard uncertainty of the smoothed {name.split('_')[0]}", "magma", (1, 99.5), True)
+            (name, f"uncertainty of the smoothed {name.split('_')[0]}", "magma", (1, 99.5), True)
             for name in uncertainties
         ),
     )
