@@ -15,8 +15,7 @@ def _check(args: argparse.Namespace) -> int:
     from surffin.io.campaign import check_pixels, read_campaign
 
     camp = read_campaign(args.campaign, require_calibration=not args.no_calibration)
-    calibration = () if camp.calibration is None else (*camp.calibration.wall, *camp.calibration.reference.views)
-    checked = check_pixels(camp, [*(view for item in camp.items.values() for view in item.views), *calibration])
+    checked = check_pixels(camp, camp.view_files)
     print(f"{camp.path}: campaign {camp.name!r} is valid (the pixels of its {len(checked['views'])} view files read)")
     print(f"  camera {camp.camera.width}x{camp.camera.height}, crop y={camp.crop.y} x={camp.crop.x}")
     if camp.calibration is not None:

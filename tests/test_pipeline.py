@@ -254,6 +254,11 @@ def test_the_plan_reads_every_view_s_pixels_once_and_again_when_the_file_changes
     every = [*(v for item in camp.items.values() for v in item.views), *camp.calibration.wall]
     every += [*camp.calibration.reference.views, *plan.repeat.wall, *plan.repeat.reference.views]
     assert set(plan.checked["views"]) == {str(view) for view in every}
+    (tmp_path / "out").mkdir()
+    for damaged in ("[1, 2]", '{"views": 3}', "{"):  # a damaged record: every file is read
+        (tmp_path / "out" / CHECKED_VIEWS).write_text(damaged)
+        assert Plan.read(raw, config).checked == plan.checked
+    shutil.rmtree(tmp_path / "out")
     assert not (tmp_path / "out").exists()  # reading a plan writes nothing
     plan.keep_checked()
     record = json.loads((tmp_path / "out" / CHECKED_VIEWS).read_text())

@@ -256,6 +256,12 @@ class Campaign:
         """The specimens' class names, sorted."""
         return sorted({item.cls for item in self.specimens.values()})
 
+    @property
+    def view_files(self) -> list[Path]:
+        """Every view file: the items', then the calibration set's (wall, then reference)."""
+        calibration = () if self.calibration is None else (*self.calibration.wall, *self.calibration.reference.views)
+        return [*(view for item in self.items.values() for view in item.views), *calibration]
+
     def read_view(self, path: str | Path) -> View:
         """Read one view file with this campaign's camera (size, units, ABCY16 encoding)."""
         return read_view(path, **self.camera.view_kwargs)

@@ -39,9 +39,10 @@ def _with_sidecars(views) -> list[str]:
 def _record(config: Mapping) -> dict | None:
     """Return the processed folder's record of checked view files; None when absent or unreadable (all are read)."""
     try:
-        return json.loads(Path(config["processed"], CHECKED_VIEWS).read_text())
+        record = json.loads(Path(config["processed"], CHECKED_VIEWS).read_text())
     except (OSError, ValueError):
         return None
+    return record if isinstance(record, dict) and isinstance(record.get("views"), dict) else None
 
 
 @dataclass(frozen=True)
@@ -92,9 +93,8 @@ class Plan:
         present = folders is not None and camp.calibration is not None
         present = present and all((camp.root / folder).is_dir() for folder in folders.values())
         repeat = calibration_set(camp, folders["wall"], folders["reference"]) if present else None
-        sets = [item.views for item in camp.items.values()]
-        sets += [(*cal.wall, *cal.reference.views) for cal in (camp.calibration, repeat) if cal is not None]
-        checked = check_pixels(camp, (view for views in sets for view in views), _record(config))
+        views = [*camp.view_files, *(() if repeat is None else (*repeat.wall, *repeat.reference.views))]
+        checked = check_pixels(camp, views, _record(config))
         return cls(camp, config, repeat, checked)
 
     def keep_checked(self) -> None:
