@@ -372,7 +372,7 @@ def check_view(
     sidecars (pose, settings) are read and checked, and a view with more than
     one pose is refused. ``pixels`` loads the pixel data for the rules
     :func:`read_view` applies (intensity on valid pixels, at least one valid
-    pixel), at a third of its cost.
+    pixel), at about half its cost.
 
     Parameters
     ----------
