@@ -158,3 +158,37 @@ def test_dask_input_is_written_lazily(tmp_path):
     ds = cube().chunk({"view": -1, "y": 2, "x": 3})
     path = write_store(ds, tmp_path / "s.zarr", chunks={"y": 2, "x": 3})
     xr.testing.assert_identical(open_store(path).load(), ds.load())
+
+
+def test_memory_and_dask_writes_lay_out_the_same_files(tmp_path):
+    # a Dataset in memory is encoded in memory and its files written by write_store; dask arrays go through
+    # zarr's file store: both must leave the same files, byte for byte
+    ds = cube(ny=11, nx=13)
+    in_memory = write_store(ds, tmp_path / "memory.zarr", chunks={"y": 4, "x": 5})
+    lazy = write_store(ds.chunk({"view": -1, "y": 4, "x": 5}), tmp_path / "dask.zarr", chunks={"y": 4, "x": 5})
+
+    def files(root):
+        return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+    written = files(in_memory)
+    assert "a/c/0/1/2" in written and len(written) == len(files(lazy))
+    assert written == files(lazy)
+
+
+def test_crash_while_writing_files_leaves_previous_store(tmp_path, monkeypatch):
+    path = write_store(cube(seed=1), tmp_path / "s.zarr")
+    calls = []
+
+    def fail_third(self, data):
+        calls.append(self)
+        if len(calls) == 3:
+            raise OSError("disk full")
+        return original(self, data)
+
+    original = type(path).write_bytes
+    monkeypatch.setattr(type(path), "write_bytes", fail_third)
+    with pytest.raises(OSError, match="disk full"):
+        write_store(cube(seed=2), path)
+    monkeypatch.undo()
+    xr.testing.assert_identical(open_store(path).load(), cube(seed=1))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.zarr"]

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import xarray as xr
+import zarr
 
 from surffin._version import __version__
 from surffin.errors import StoreError
@@ -195,6 +196,14 @@ def _strings_as_objects(ds: xr.Dataset) -> xr.Dataset:
     return ds.assign_coords(coords).assign(data)
 
 
+def _write_files(encoded: Mapping, folder: Path) -> None:
+    """Write the documents and chunks of a store encoded in memory (key -> buffer) as zarr's file store would."""
+    for key, buffer in encoded.items():
+        file = folder.joinpath(*key.split("/"))
+        file.parent.mkdir(parents=True, exist_ok=True)
+        file.write_bytes(buffer.to_bytes())
+
+
 def write_store(
     ds: xr.Dataset, path: str | os.PathLike, *, chunks: Mapping[str, int] | None = None, scheduler=None
 ) -> Path:
@@ -232,17 +241,23 @@ def write_store(
     for variable in ds.variables.values():
         variable.attrs = encode_attrs(variable.attrs)
     partial = path.parent / f".{path.name}{_PARTIAL}{uuid.uuid4().hex[:12]}"
+    # A Dataset in memory is encoded into memory and its files written in one go: through zarr's file
+    # store (a thread hop per document and chunk) an item's stores took 1.15-1.65x as long to write
+    # (benchmarks/bench_store.py), the files byte-identical. Dask arrays are written chunk by chunk to
+    # the files, so that memory follows the chunks and any scheduler (a cluster's too) can write them.
+    encoded: dict = {}
     try:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
             ds.to_zarr(
-                partial,
+                zarr.storage.MemoryStore(encoded) if in_memory else partial,
                 mode="w-",
                 zarr_format=3,
                 consolidated=True,
                 encoding=_encoding(ds, chunking if in_memory else None),
                 compute=False,
             ).compute(scheduler=scheduler)
+        _write_files(encoded, partial)
         if path.exists():
             retired = path.parent / f".{path.name}{_RETIRED}{uuid.uuid4().hex[:12]}"
             os.replace(path, retired)
