@@ -1,6 +1,7 @@
 """Tests of surffin.io.campaign: read_campaign's validation and read_truth."""
 
 import json
+import threading
 
 import numpy as np
 import pytest
@@ -8,12 +9,21 @@ import xarray as xr
 import yaml
 
 from surffin.cli import main
-from surffin.errors import CampaignError, StoreError
+from surffin.errors import CampaignError, StoreError, ViewFileError
 from surffin.grid import Roi
-from surffin.io.campaign import Camera, read_campaign, read_truth
+from surffin.io import campaign as campaign_module
+from surffin.io.campaign import Camera, check_pixels, read_campaign, read_truth
 from surffin.io.ingest import ingest_item
 from surffin.io.store import open_store, write_store
-from surffin.io.viewfile import ABCY16_DEFAULT, META_SUFFIX, POSE_JSON_SUFFIX, list_views, sidecar_path, write_view
+from surffin.io.viewfile import (
+    ABCY16_DEFAULT,
+    META_SUFFIX,
+    POSE_JSON_SUFFIX,
+    check_view_pixels,
+    list_views,
+    sidecar_path,
+    write_view,
+)
 from surffin.pipeline.parameters import read_config
 from surffin.pipeline.workflow import Plan
 
@@ -585,6 +595,42 @@ def test_surffin_check_reads_every_view_s_pixels(campaign, capsys):
     np.savez(views[0], **arrays)
     assert main(["check", str(root)]) == 2
     assert f"{views[0]}: intensity is NaN, infinite or negative on " in capsys.readouterr().err
+
+
+def test_check_pixels_names_the_broken_files_in_the_order_of_the_views(campaign, synthetic_view, monkeypatch):
+    root, doc = campaign
+    write_yaml(root, doc)
+    camp = read_campaign(root)
+    views = camp.view_files[::-1]  # any order: the files are read in threads, and named in this one
+    assert len(views) == 11 and campaign_module.PIXEL_READERS > 1
+    assert list(check_pixels(camp, views)["views"]) == [str(view) for view in views]
+    xyz, intensity, _ = synthetic_view
+    broken = [*views[1:4], *views[7::2]]  # every form: npz, ply and raw
+    assert {view.suffix for view in broken} == {".npz", ".ply", ".raw"}
+    for view in broken:
+        write_view(view, np.full_like(xyz, np.nan), intensity)
+    # the first broken file is done last: its check waits for the last view's
+    last_done = threading.Event()
+
+    def first_broken_last(path, **camera):
+        if path == str(broken[0]):
+            assert last_done.wait(timeout=30)
+        try:
+            check_view_pixels(path, **camera)
+        finally:
+            if path == str(views[-1]):
+                last_done.set()
+
+    monkeypatch.setattr(campaign_module, "check_view_pixels", first_broken_last)
+    monkeypatch.setattr(campaign_module, "SHOWN_BROKEN", 3)
+    with pytest.raises(ViewFileError) as raised:
+        check_pixels(camp, views)
+    assert last_done.is_set()
+    assert str(raised.value).splitlines() == [
+        f"5 of {len(views)} view files break the campaign contract:",
+        *(f"{view}: no valid pixel (every pixel has xyz NaN or z <= 0); expected at least one" for view in broken[:3]),
+        "... and 2 more",
+    ]
 
 
 # --- an external calibration store acquired with other settings ------------------------------------------

@@ -10,6 +10,7 @@ from surffin.io.viewfile import (
     META_SUFFIX,
     POSE_JSON_SUFFIX,
     check_view,
+    check_view_pixels,
     list_views,
     pose_sidecar_path,
     read_settings,
@@ -718,8 +719,11 @@ def test_broken_view_file(tmp_path, synthetic_view, sensor, make, match, structu
     if structural:
         with pytest.raises(ViewFileError, match=match):
             check_view(path, **sensor)
-    else:
+    else:  # the structure passes, the pixels do not
         check_view(path, **sensor)
+        with pytest.raises(ViewFileError, match=match) as raised:
+            check_view_pixels(path, **sensor)
+        assert str(named) in str(raised.value)
     assert snapshot(tmp_path) == before
 
 

@@ -24,7 +24,9 @@ import re
 import reprlib
 import zipfile
 from collections.abc import Callable, Iterator, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any, NoReturn
 
@@ -38,6 +40,7 @@ from surffin.io.viewfile import (
     View,
     abcy16_encoding,
     check_view,
+    check_view_pixels,
     describe_groups,
     list_views,
     npz_headers,
@@ -66,6 +69,8 @@ MIN_VIEWS = 2
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 #: Broken view files a failed :func:`check_pixels` lists (then how many more).
 SHOWN_BROKEN = 20
+#: View files :func:`check_pixels` reads at once: their reads and checks release the GIL.
+PIXEL_READERS = 2
 
 _UNITS = ("m", "mm")
 _DISTORTION_SIZES = (4, 5, 8)
@@ -310,14 +315,16 @@ def check_pixels(campaign: Campaign, views, known: Mapping | None = None) -> dic
     """Read view files' pixels for the contract's pixel rules, which their headers cannot tell.
 
     Intensity NaN, infinite or negative on a pixel whose xyz is valid, and a view without a valid
-    pixel, are refused (:func:`~surffin.io.viewfile.check_view` with ``pixels``).
+    pixel, are refused (:func:`~surffin.io.viewfile.check_view_pixels`). :data:`PIXEL_READERS`
+    files are read at once, in threads; the broken ones are named in the order of ``views``.
 
     Parameters
     ----------
     campaign : Campaign
         Its camera decodes the files.
     views : iterable of path
-        The view files.
+        The view files, their structure checked (:func:`~surffin.io.viewfile.check_view`, as
+        :func:`read_campaign` does for the campaign's views): it is not checked again here.
     known : mapping, optional
         A record this function returned before: the files it lists with their present size and
         modification time, read with the same camera settings, are not read again.
@@ -334,17 +341,15 @@ def check_pixels(campaign: Campaign, views, known: Mapping | None = None) -> dic
     """
     camera = campaign.camera.settings
     recorded = known["views"] if known and known.get("camera") == camera else {}
-    checked, broken = {}, []
+    stamps = {}
     for path in dict.fromkeys(str(view) for view in views):
         stat = Path(path).stat()
-        stamp = [stat.st_size, stat.st_mtime_ns]
-        if recorded.get(path) != stamp:
-            try:
-                check_view(path, **campaign.camera.view_kwargs, pixels=True)
-            except ViewFileError as error:
-                broken.append(str(error))
-                continue
-        checked[path] = stamp
+        stamps[path] = [stat.st_size, stat.st_mtime_ns]
+    unread = [path for path, stamp in stamps.items() if recorded.get(path) != stamp]
+    with ThreadPoolExecutor(PIXEL_READERS) as pool:
+        problems = dict(zip(unread, pool.map(partial(_pixel_problem, campaign.camera), unread)))
+    broken = [problem for problem in problems.values() if problem is not None]
+    checked = {path: stamp for path, stamp in stamps.items() if problems.get(path) is None}
     if broken:
         more = f"\n... and {len(broken) - SHOWN_BROKEN} more" if len(broken) > SHOWN_BROKEN else ""
         raise ViewFileError(
@@ -353,6 +358,17 @@ def check_pixels(campaign: Campaign, views, known: Mapping | None = None) -> dic
             + more
         )
     return {"camera": camera, "views": checked}
+
+
+def _pixel_problem(camera: Camera, path: str) -> str | None:
+    """Say what breaks the pixel rules in a view file (its :class:`ViewFileError`), or return None."""
+    try:
+        check_view_pixels(
+            path, width=camera.width, height=camera.height, abcy16=camera.abcy16, ply_intensity=camera.ply_intensity
+        )
+    except ViewFileError as error:
+        return str(error)
+    return None
 
 
 def read_truth(path: str | Path, *, width: int, height: int) -> tuple[np.ndarray, list[str]]:

@@ -57,6 +57,7 @@ __all__ = [
     "write_view",
     "list_views",
     "check_view",
+    "check_view_pixels",
     "read_settings",
     "setting_values",
     "describe_groups",
@@ -362,24 +363,19 @@ def check_view(
     ply_intensity: str = PLY_INTENSITY,
     saturation: float | None = None,
     hand_eye: np.ndarray | None = None,
-    pixels: bool = False,
 ) -> None:
-    """Check a view file's structure cheaply, and with ``pixels`` its pixel rules too.
+    """Check a view file's structure cheaply; :func:`check_view_pixels` checks its pixel rules.
 
     npz: member names, dtypes and shapes from the array headers (no pickle);
     ply: the header and, for binary files, the size; raw: the size and, on a
     sample of rows, that the codes look like the configured signedness. The
     sidecars (pose, settings) are read and checked, and a view with more than
-    one pose is refused. ``pixels`` loads the pixel data for the rules
-    :func:`read_view` applies (intensity on valid pixels, at least one valid
-    pixel), at about half its cost.
+    one pose is refused.
 
     Parameters
     ----------
     path, width, height, units, abcy16, ply_intensity, saturation, hand_eye
         As for :func:`read_view` (``saturation`` is not needed here).
-    pixels : bool
-        Load the pixels too.
 
     Raises
     ------
@@ -389,10 +385,36 @@ def check_view(
     _checked_units(units)
     if hand_eye is not None:
         _checked_transform(hand_eye, "hand_eye")
-    decoding = _decoding(abcy16, ply_intensity)
-    form = _inspect(Path(path), width, height, decoding)[0]
-    if pixels:
-        _pixels(Path(path), form, width, height, decoding)
+    _inspect(Path(path), width, height, _decoding(abcy16, ply_intensity))
+
+
+def check_view_pixels(
+    path: str | Path,
+    *,
+    width: int,
+    height: int,
+    abcy16: Mapping | None = None,
+    ply_intensity: str = PLY_INTENSITY,
+) -> None:
+    """Check the pixel rules of a view file whose structure :func:`check_view` passed.
+
+    Loads the pixel data for the rules :func:`read_view` applies (intensity on
+    valid pixels, at least one valid pixel), at about half its cost; the
+    structure is not checked again. File reads, zlib and numpy release the
+    GIL: files checked in threads at once take the cores there are.
+
+    Parameters
+    ----------
+    path, width, height, abcy16, ply_intensity
+        As for :func:`read_view`.
+
+    Raises
+    ------
+    ViewFileError
+        The pixels break the contract, or the file is unreadable.
+    """
+    path = Path(path)
+    _pixels(path, _FORMS[path.suffix], width, height, _decoding(abcy16, ply_intensity))
 
 
 def read_settings(path: str | Path) -> dict[str, int | float | str]:
