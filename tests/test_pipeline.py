@@ -4,6 +4,7 @@ import dataclasses
 import json
 import logging
 import math
+import multiprocessing
 import os
 import shutil
 import subprocess
@@ -13,6 +14,7 @@ import time
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
+import cv2
 import dask
 import dask.array
 import numpy as np
@@ -26,7 +28,7 @@ from surffin.io.store import open_store
 from surffin.method import stages
 from surffin.method.features import select_roi, variability
 from surffin.method.stages import ITEM_CHAIN, aoi_stage, features_stage, process_item
-from surffin.pipeline.jobs import dask_scheduler, in_worker, job_seconds, logging_to
+from surffin.pipeline.jobs import dask_scheduler, in_worker, job_seconds, logging_to, start_workers
 from surffin.pipeline.parameters import read_config
 from surffin.pipeline.run import run_calibration, run_ingest, run_stage
 from surffin.pipeline.table import STAGES, input_paths
@@ -355,3 +357,20 @@ def test_in_worker_raises_the_call_s_error_and_survives_a_crash(tmp_path):
 
 def worker_report(name, mapping=None):
     return os.getpid(), (type(name).__name__, name if mapping is None else mapping)
+
+
+def test_start_workers_starts_the_worker_the_next_job_runs_in():
+    thread = start_workers()
+    thread.join(timeout=120)
+    assert not thread.is_alive()
+    started = {child.pid for child in multiprocessing.active_children()}
+    assert in_worker(os.getpid) in started
+
+
+def opencv_threads():
+    return cv2.getNumThreads()
+
+
+def test_in_worker_computes_on_one_thread():
+    # the pool runs one worker per core: OpenCV's own threads would only contend with the other workers
+    assert in_worker(opencv_threads) == 1

@@ -28,7 +28,7 @@ from typing import Any
 import dask
 from dask.callbacks import Callback
 
-__all__ = ["logging_to", "job_seconds", "dask_scheduler", "in_worker"]
+__all__ = ["logging_to", "job_seconds", "dask_scheduler", "in_worker", "start_workers"]
 
 log = logging.getLogger("surffin")
 
@@ -214,8 +214,36 @@ def _pool(renew: bool = False) -> ProcessPoolExecutor:
             # most one per core.
             context = multiprocessing.get_context("forkserver")
             context.set_forkserver_preload(_PRELOAD)
-            _POOL[:] = [ProcessPoolExecutor(max_workers=os.cpu_count(), mp_context=context)]
+            _POOL[:] = [ProcessPoolExecutor(max_workers=os.cpu_count(), mp_context=context, initializer=_one_thread)]
         return _POOL[0]
+
+
+def start_workers() -> threading.Thread:
+    """Start the pool's first worker in the background and return the thread that starts it.
+
+    The worker processes' server imports surffin (~2 s) before the first worker forks: started while
+    snakemake builds its DAG, on the core that leaves idle, it is ready for the first job instead of
+    delaying it. A failure to start is left to the first job's :func:`in_worker`, which reports it.
+    """
+
+    def start() -> None:
+        with contextlib.suppress(Exception):
+            _pool().submit(os.getpid)
+
+    thread = threading.Thread(target=start, name="surffin-workers", daemon=True)
+    thread.start()
+    return thread
+
+
+def _one_thread() -> None:
+    """Keep a worker's OpenCV calls on its own thread: the pool already runs one worker per core.
+
+    OpenCV's own threads (one per core by default) would only contend with the other workers' jobs
+    (docs/performance.md, campaign rate).
+    """
+    import cv2
+
+    cv2.setNumThreads(1)
 
 
 def _plain(value: Any) -> Any:

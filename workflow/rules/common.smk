@@ -14,7 +14,7 @@ from surffin.pipeline.analyses import (
     run_paper_comparison,
     run_sensitivity,
 )
-from surffin.pipeline.jobs import in_worker
+from surffin.pipeline.jobs import in_worker, start_workers
 from surffin.pipeline.parameters import aoi_parameters, calibration_parameters, label_parameters
 from surffin.pipeline.run import (
     run_calibration,
@@ -56,6 +56,8 @@ wildcard_constraints:
 def plan():
     """The campaign's Plan, read once (every view file checked); the default campaign is rendered first when absent."""
     if not _PLAN:
+        if workflow.local_exec and not workflow.dryrun:
+            start_workers()  # the job workers import surffin while the DAG is built
         if CAMPAIGN.resolve() == DEFAULT_CAMPAIGN and not (CAMPAIGN / "campaign.yaml").exists():
             checkpoints.default_campaign.get()
         try:
