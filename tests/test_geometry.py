@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import surffin
+from surffin.grid import Roi
 from surffin.io.ingest import ingest_item
 from surffin.method.calibration import TERMS
 from surffin.method.geometry import (
@@ -446,6 +447,16 @@ def test_float32_input_equals_float64_input():
     half = window // 2
     naive_error = np.median(np.abs(naive_float32_aoi(xyz, window) - truth[half:-half, half:-half]))
     assert naive_error > 3 * error
+
+
+@pytest.mark.parametrize("region", [Roi((0, 100), (0, 120)), Roi((13, 71), (7, 99)), Roi((99, 100), (0, 1))])
+def test_a_region_of_the_frame_takes_the_whole_frames_values(region):
+    # the planes are fitted over the whole frame either way: to the bit, at four levels of windows
+    for xyz in (blocks_scene(100, 120), noisy_surface(100, 120, seed=1)):
+        whole = frame_angle_of_incidence(xyz, 7, max_window=60)
+        part = frame_angle_of_incidence(xyz, 7, max_window=60, region=region)
+        for values, inside in zip(whole, part, strict=True):
+            np.testing.assert_array_equal(inside, values[region.slices])
 
 
 # xarray layer, (7) dask ---------------------------------------------------------------------------

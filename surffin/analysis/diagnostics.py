@@ -48,7 +48,7 @@ from surffin.method.calibration import (
     observe_view,
     with_reflectance,
 )
-from surffin.method.scattering import DEFAULT_MIN_SPREAD, fit_scattering
+from surffin.method.scattering import DEFAULT_MIN_SPREAD, fit_scattering_arrays
 from surffin.paper import CALIBRATION as PAPER_CALIBRATION
 
 if TYPE_CHECKING:
@@ -262,7 +262,7 @@ def coefficient_statistics(calibration: xr.Dataset, region: Roi | None = None) -
     return {
         "fit": {
             **{key: table[key] for key in ("mean_r2", "median_r2", "n_fitted", "n_pixels", "status_counts")},
-            "sensor_mean_r2": calibration_diagnostics(ds)["mean_r2"],
+            "sensor_mean_r2": float(ds["r2"].values[ds["status"].values == 0].mean()),
         },
         "variability_percent": {kind: dict(zip(TERMS, values)) for kind, values in spreads.items()},
         "correlation": {"terms": table["correlation_terms"], "matrix": table["correlation"]},
@@ -392,11 +392,11 @@ def wall_features(
 ) -> tuple[xr.Dataset, xr.Dataset]:
     """Calibrated reflectance of wall views with each calibration, and R0, n fitted per sensor pixel over them.
 
-    Each view is read and its AOI and distance computed on the full sensor
-    (:mod:`surffin.method.geometry`, as the calibration does), then cropped to the
-    campaign's crop. A sensor pixel sees the same uniform wall in every view,
+    Each view is read and its AOI and distance computed over the campaign's crop,
+    as the calibration computes them on the full sensor
+    (:func:`surffin.method.calibration.observe_view`). A sensor pixel sees the same uniform wall in every view,
     so its reflectances over the views follow one scattering law, fitted by
-    :func:`surffin.method.scattering.fit_scattering`.
+    :func:`surffin.method.scattering.fit_scattering_arrays`.
 
     Parameters
     ----------
@@ -408,7 +408,7 @@ def wall_features(
     aoi : mapping
         AOI parameters ``window``, ``jump``, ``max_window`` (those of the calibration).
     min_views, min_spread
-        Of :func:`~surffin.method.scattering.fit_scattering`.
+        Of :func:`~surffin.method.scattering.fit_scattering_arrays`.
 
     Returns
     -------
@@ -422,16 +422,16 @@ def wall_features(
     names = list(calibrations)
     coefs = [calibrations[name]["coef"].transpose("term", "y", "x").values[:, rows, columns] for name in names]
     scales = [float(calibrations[name].attrs["scale_k"]) for name in names]
+    corrections = [calibrations[name].get("correction") for name in names]
     shape = (len(views), *campaign.crop.shape)
     reflectance = np.empty((len(names), *shape), dtype=np.float32)
     angles = np.empty(shape, dtype=np.float32)
     for index, path in enumerate(views):
-        view = observe_view(campaign, path, aoi)
-        values = np.stack([view.intensity, view.distance, view.aoi])[:, rows, columns]
-        values[:, ~view.valid[rows, columns]] = np.nan
+        view = observe_view(campaign, path, aoi, campaign.crop)
+        values = np.stack([view.intensity, view.distance, view.aoi])
+        values[:, ~view.valid] = np.nan
         angles[index] = values[2]
-        for which, (coef, scale) in enumerate(zip(coefs, scales)):
-            correction = calibrations[names[which]].get("correction")
+        for which, (coef, scale, correction) in enumerate(zip(coefs, scales, corrections)):
             reflectance[which, index] = with_reflectance(values, coef, scale, axis=0, correction=correction)[3]
     coords = {
         "calibration": names,
@@ -447,23 +447,19 @@ def wall_features(
         coords=coords,
     )
     # band by band of rows: the fit's float64 working copies of every view are then one band's
-    bands = [slice(start, start + FIT_BAND_ROWS) for start in range(0, shape[1], FIT_BAND_ROWS)]
-    fits = [
-        xr.concat(
-            [
-                fit_scattering(
-                    observed["reflectance"].sel(calibration=name).isel(y=rows),
-                    observed["aoi"].isel(y=rows),
-                    min_views=min_views,
-                    min_spread=min_spread,
-                )[["R0", "n"]]
-                for rows in bands
-            ],
-            dim="y",
-        )
-        for name in names
-    ]
-    return observed, xr.concat(fits, dim="calibration").assign_coords(calibration=names)
+    fitted = {name: np.empty((len(names), *shape[1:])) for name in ("R0", "n")}
+    for start in range(0, shape[1], FIT_BAND_ROWS):
+        band = slice(start, start + FIT_BAND_ROWS)
+        theta = np.moveaxis(angles[:, band], 0, -1)
+        for which in range(len(names)):
+            fit = fit_scattering_arrays(
+                np.moveaxis(reflectance[which, :, band], 0, -1), theta, min_views=min_views, min_spread=min_spread
+            )
+            for name, values in fitted.items():
+                values[which, band] = fit[name]
+    dims = ("calibration", "y", "x")
+    fits = xr.Dataset({name: (dims, values) for name, values in fitted.items()}, {dim: coords[dim] for dim in dims})
+    return observed, fits
 
 
 def representative_specimens(campaign: Campaign) -> list[str]:
@@ -565,8 +561,10 @@ def process_specimens(
     for name in representative_specimens(campaign):
         item = campaign.specimens[name]
         if name in stores:
-            run = {key: open_store(stores[name][key], stage=stage) for key, stage in SPECIMEN_STORES.items()}
-            # read once: each other calibration's stages read them
+            # without dask (an item's stores are small): the ingest and AOI read once, for each other calibration
+            run = {
+                key: open_store(stores[name][key], stage=stage, chunks=None) for key, stage in SPECIMEN_STORES.items()
+            }
             run.update({key: run[key].load() for key in ("ingest", "aoi")})
         else:
             ingest = ingest_item(campaign, name)
@@ -759,7 +757,7 @@ def calibration_report(
     stores = {"first": calibration, **({} if repeat is None else {"repeat": repeat})}
     calibrations = {}
     for name, path in stores.items():
-        ds = open_store(path, stage="calibration")
+        ds = open_store(path, stage="calibration", chunks=None)
         if "wall_obs" not in ds:
             raise StoreError(
                 f"{path}: the calibration store keeps no wall observations (wall_obs); refit it with this surffin"
@@ -799,7 +797,7 @@ def calibration_report(
     grid = observed_grid(calibrations["first"])
     tables = {f"{name} calibration, crop": report["calibrations"][name]["correlation"] for name in calibrations}
     if instrument_truth is not None:
-        truth = open_store(instrument_truth).load()
+        truth = open_store(instrument_truth, chunks=None).load()
         report["truth"] = {
             **_truth_statistics(truth, region),
             **{name: compare_calibrations(cal, truth, grid, region) for name, cal in calibrations.items()},

@@ -162,7 +162,7 @@ def instrument_function(coef, distance, aoi):
 
 
 class Observation(NamedTuple):
-    """One view of the calibration set, on the full sensor grid.
+    """One view of the calibration set, on the full sensor grid (or a region of it, :func:`observe_view`).
 
     Attributes
     ----------
@@ -1260,7 +1260,7 @@ def with_reflectance(
     return np.concatenate([values, np.expand_dims(reflectance, axis)], axis=axis)
 
 
-def observe_view(campaign: Campaign, path: os.PathLike, aoi: Mapping) -> Observation:
+def observe_view(campaign: Campaign, path: os.PathLike, aoi: Mapping, region: Roi | None = None) -> Observation:
     """Read one view and compute its AOI and distance on the full sensor, as the calibration does.
 
     Parameters
@@ -1272,17 +1272,23 @@ def observe_view(campaign: Campaign, path: os.PathLike, aoi: Mapping) -> Observa
     aoi : mapping
         AOI parameters ``window``, ``jump``, ``max_window``
         (:func:`surffin.method.geometry.frame_angle_of_incidence`).
+    region : Roi, optional
+        Sensor pixels to observe: their values are those of the full sensor's, at less cost; default all.
 
     Returns
     -------
     Observation
-        The view's intensity, distance (m), AOI (rad) and valid mask on the full sensor; saturated
-        pixels are not valid, but their points take part in the AOI.
+        The view's intensity, distance (m), AOI (rad) and valid mask on the full sensor (or the
+        ``region``); saturated pixels are not valid, but their points take part in the AOI.
     """
     view = campaign.read_view(path)
-    aoi, distance = frame_angle_of_incidence(view.xyz, aoi["window"], jump=aoi["jump"], max_window=aoi["max_window"])
-    saturated = int(view.valid.sum() - view.radiometric.sum())
-    return Observation(str(path), view.intensity, distance, aoi, view.radiometric, saturated)
+    aoi, distance = frame_angle_of_incidence(
+        view.xyz, aoi["window"], jump=aoi["jump"], max_window=aoi["max_window"], region=region
+    )
+    part = (slice(None), slice(None)) if region is None else region.slices
+    valid, radiometric = view.valid[part], view.radiometric[part]
+    saturated = int(valid.sum() - radiometric.sum())
+    return Observation(str(path), view.intensity[part], distance, aoi, radiometric, saturated)
 
 
 class _SpilledViews:
@@ -1684,7 +1690,7 @@ def check_calibration(path: str | os.PathLike, campaign: Campaign) -> None:
         (width x height), so it cannot cover the crop, or a setting of
         ``camera.match_settings`` differs between its views and the items'.
     """
-    ds = open_store(path, stage="calibration")
+    ds = open_store(path, stage="calibration", chunks=None)  # without dask: the check reads one array
     camera = campaign.camera
     grid = (ds.sizes.get("y"), ds.sizes.get("x"))
     if grid != (camera.height, camera.width):

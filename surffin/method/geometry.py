@@ -27,10 +27,14 @@ from __future__ import annotations
 
 import math
 import numbers
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 import xarray as xr
+
+if TYPE_CHECKING:
+    from surffin.grid import Roi
 
 __all__ = [
     "angle_of_incidence",
@@ -541,15 +545,23 @@ def _points(xyz) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _window_planes(
-    points: np.ndarray, valid: np.ndarray, window: int, jump: float, min_fraction: float, max_window: int
+    points: np.ndarray,
+    valid: np.ndarray,
+    window: int,
+    jump: float,
+    min_fraction: float,
+    max_window: int,
+    region: tuple[slice, slice] = (slice(None), slice(None)),
 ) -> np.ndarray:
-    """Find the plane each pixel of one frame takes: its unit normal (3, H, W), unoriented, NaN where none.
+    """Find the plane each pixel of one frame takes: its unit normal (3, h, w), unoriented, NaN where none.
 
     The base level gives each eligible pixel the plane of one of the 9 windows
     of ``window`` pixels that contain it; each further level doubles the window
     (2 x 2 pixel cells) and replaces the plane while the chosen window of that
     level is usable and its residual stays within :data:`_GROWTH` times the
-    smallest residual of the base windows (module docstring).
+    smallest residual of the base windows (module docstring). The planes are
+    fitted over the whole frame; the normals are those of the pixels of
+    ``region`` (row and column slices, of step 1), as the whole frame's.
     """
     window = _check_window(window)
     jump = _check_jump(jump)
@@ -560,8 +572,9 @@ def _window_planes(
     eligible = valid & ~edges
     moments, centre = _moments(points, valid)
     levels = _levels(window, max_window)
-    # x', y' (2, H * W) (meaningless where invalid)
-    rays = (moments[1:3] + centre[:2, None, None]).reshape(2, -1) if levels > 1 else None
+    rows, columns = (range(size)[part] for part, size in zip(region, valid.shape))
+    # x', y' (2, h * w) of the region's pixels (meaningless where invalid)
+    rays = (moments[1:3, region[0], region[1]] + centre[:2, None, None]).reshape(2, -1) if levels > 1 else None
     pooled = _pool(moments) if levels > 1 else None
     min_count = max(3, math.ceil(min_fraction * window * window - 1e-9))
     base, _, base_source, smallest, _, _ = _level_planes(moments, centre, edges, eligible, window, min_count, False)
@@ -584,17 +597,20 @@ def _window_planes(
             break
         planes.append((normal, centroid, noise, residual, source))
         last += taken
-    out = np.full((3, *valid.shape), np.nan)
+    # the region's pixels from here on: each pixel's normal is its own
+    last, base_source = last[region[0], region[1]], base_source[region[0], region[1]]
+    out = np.full((3, len(rows), len(columns)), np.nan)
     flat = out.reshape(3, -1)
     pixel = np.flatnonzero((last == 0) & (base_source >= 0))
     normal = base.reshape(3, -1).take(base_source.reshape(-1)[pixel], axis=1)
     _normalise(normal)
     flat[:, pixel] = normal
-    # each pixel takes the normal of its last level's cell (flat indices of both), carried to the pixel
+    # each pixel takes the normal of its last level's cell (flat indices in the region and the level's grid),
+    # carried to the pixel
     pixels, cells = [], []
     for level, (*_, source) in enumerate(planes, start=1):
         pixels.append(np.flatnonzero(last == level))
-        row, column = (np.arange(size, dtype=np.int32) >> level for size in valid.shape)
+        row, column = (np.arange(part.start, part.stop, dtype=np.int32) >> level for part in (rows, columns))
         cells.append((row[:, None] * np.int32(source.shape[1]) + column).reshape(-1).take(pixels[-1]))
     for pixel, (model, column) in zip(pixels, _level_models(planes, cells, window // 2)):
         for block in range(0, pixel.size, _BLOCK):
@@ -705,8 +721,9 @@ def frame_angle_of_incidence(
     jump: float = DEFAULT_JUMP,
     min_fraction: float = _MIN_FRACTION,
     max_window: int | None = None,
+    region: Roi | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Angle of incidence and distance of every pixel of one organized frame.
+    """Angle of incidence and distance of every pixel of one organized frame, or of a region of it.
 
     Parameters
     ----------
@@ -714,16 +731,22 @@ def frame_angle_of_incidence(
         As in :func:`plane_normals`.
     window, jump, min_fraction, max_window
         As in :func:`plane_normals`.
+    region : Roi, optional
+        The pixels to return (inside the frame): their values are the whole frame's, whose
+        points the planes are still fitted to, at less cost; default the whole frame.
 
     Returns
     -------
     aoi : (H, W) ndarray of float64, radians
-        ``arccos(|v . n|)`` in [0, pi/2]; NaN where the normal is undefined.
+        ``arccos(|v . n|)`` in [0, pi/2]; NaN where the normal is undefined. With a
+        ``region``, of its shape.
     distance : (H, W) ndarray of float64, metres
         ``|P|``; NaN at invalid pixels only.
     """
     points, valid = _points(xyz)
-    normal = _window_planes(points, valid, window, jump, min_fraction, max_window or window)
+    part = (slice(None), slice(None)) if region is None else region.slices
+    normal = _window_planes(points, valid, window, jump, min_fraction, max_window or window, part)
+    points, valid = points[:, part[0], part[1]], valid[part]
     aoi = np.empty(valid.shape)
     distance = np.empty(valid.shape)
     for rows in _row_blocks(*valid.shape):
