@@ -150,6 +150,19 @@ def test_inputs_of_any_layout_and_float_type_fit_alike_and_are_left_alone():
             np.testing.assert_array_equal(a, b)  # NaN and all: the inputs are not written to
 
 
+@pytest.mark.parametrize("nview", [5, 20])
+def test_a_pixels_fit_does_not_depend_on_the_pixels_fitted_with_it(nview):
+    # the kernel works on blocks of pixels, their size set by the number of views: a pixel's fit is its own, to
+    # the bit (but for a pixel alone in a block, whose views einsum sums in another order)
+    r, theta, _, _ = noisy_pixels(20000, nview, seed=5)
+    r[::7, 1] = np.nan
+    whole = fit_scattering_arrays(r, theta)
+    for part in (slice(0, 2), slice(3, 780), slice(780, None)):
+        alone = fit_scattering_arrays(r[part], theta[part])
+        for key, value in whole.items():
+            np.testing.assert_array_equal(alone[key], value[part], err_msg=key)
+
+
 def test_high_incidence_pixels_match_scipy_least_squares():
     # views at 50-67 deg: 4 of the 10 start values of n (above 1.6) light none of them and are not tried
     rng = np.random.default_rng(8)
