@@ -1273,7 +1273,7 @@ def observe_view(campaign: Campaign, path: os.PathLike, aoi: Mapping, region: Ro
         AOI parameters ``window``, ``jump``, ``max_window``
         (:func:`surffin.method.geometry.frame_angle_of_incidence`).
     region : Roi, optional
-        Sensor pixels to observe: their values are those of the full sensor's, at less cost; default all.
+        Sensor pixels to observe, at less cost: their values are the full sensor's, to the bit; default all.
 
     Returns
     -------

@@ -732,8 +732,8 @@ def frame_angle_of_incidence(
     window, jump, min_fraction, max_window
         As in :func:`plane_normals`.
     region : Roi, optional
-        The pixels to return (inside the frame): their values are the whole frame's, whose
-        points the planes are still fitted to, at less cost; default the whole frame.
+        The pixels to return (inside the frame), at less cost: the planes are still fitted to the
+        whole frame, so their values are the whole frame's, to the bit; default the whole frame.
 
     Returns
     -------
