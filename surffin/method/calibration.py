@@ -286,17 +286,18 @@ def _accumulate(moments, intensity, distance, aoi, ok) -> None:
     np.multiply(w, w, out=w)
     np.divide(q, w, out=w)
     y = np.where(ok, intensity, 0.0) / np.cos(t)
-    powers = [q]
-    for _ in range(4):
-        powers.append(powers[-1] * t)
+    # powers[c] = w^a theta^c (masked) for the current a
+    powers = np.empty((5, q.size))
+    powers[0] = q
+    for c in range(1, 5):
+        np.multiply(powers[c - 1], t, out=powers[c])
+    scratch = np.empty((3, q.size))
     for a in range(3):
-        for c, power in enumerate(powers):
-            moments[5 * a + c] += power
+        moments[5 * a : 5 * a + 5] += powers
         if a < 2:
-            for c in range(3):
-                moments[_T0 + 3 * a + c] += powers[c] * y
-            powers = [power * w for power in powers]
-    moments[_YY] += y * y
+            moments[_T0 + 3 * a : _T0 + 3 * a + 3] += np.multiply(powers[:3], y, out=scratch)
+            powers *= w
+    moments[_YY] += np.multiply(y, y, out=t)
 
 
 def _system(moments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -841,7 +842,11 @@ def fit_correction(
     with np.errstate(invalid="ignore"):
         keep = np.isfinite(distance) & np.isfinite(aoi) & (ratio >= low) & (ratio <= high)
     ratio, distance, aoi, group = ratio[keep], distance[keep], aoi[keep], group[keep]
-    groups, group = np.unique(group, return_inverse=True)
+    # the distinct groups are those of the first of each run (a view's observations come together): no sort of them all
+    heads = np.ones(group.size, dtype=bool)
+    np.not_equal(group[1:], group[:-1], out=heads[1:])
+    groups = np.unique(group[heads])
+    group = np.searchsorted(groups, group)
     if groups.size < 2:
         raise CalibrationError(
             f"the residual correction needs wall observations from at least 2 views, got {groups.size}"
@@ -1510,7 +1515,7 @@ def calibrate(
             ) from exc
 
     def residuals(coef: np.ndarray, penalty: float | None = None) -> xr.Dataset:
-        pixels, views, (intensity, distance, angle) = samples.pool()
+        pixels, views, (intensity, distance, angle) = pooled
         f = instrument_function(coef.reshape(5, -1)[:, pixels], distance, angle)
         with np.errstate(invalid="ignore", divide="ignore"):
             ratio = intensity / (f * np.cos(angle))
@@ -1540,6 +1545,8 @@ def calibrate(
         noise = NoiseStatistics()
         correction = first = None
         if residual_correction:
+            # the random observations are all kept by now: pooled once for both fits of the correction
+            pooled = samples.pool()
             first = residuals(plain)["correction"]
             refit = WallStatistics(stats.shape)
         for path in again:
