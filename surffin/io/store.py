@@ -219,8 +219,8 @@ def write_store(
         Chunk sizes per dimension (default :data:`DEFAULT_CHUNKS`); ``view`` is
         always kept whole so that per-pixel fits see all views of a pixel at once.
     scheduler : callable, optional
-        The dask scheduler that writes it (e.g. ``dask.local.get_sync`` for a
-        Dataset in memory); default: the one configured.
+        The dask scheduler that writes a dask-backed ``ds``; default: the one
+        configured. A Dataset in memory is written without dask.
 
     Returns
     -------
@@ -249,14 +249,18 @@ def write_store(
     try:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
-            ds.to_zarr(
+            # in memory, written at once: a delayed write's compute, on dask's default scheduler, would
+            # import dask.distributed (0.3 s) to look for a client
+            written = ds.to_zarr(
                 zarr.storage.MemoryStore(encoded) if in_memory else partial,
                 mode="w-",
                 zarr_format=3,
                 consolidated=True,
                 encoding=_encoding(ds, chunking if in_memory else None),
-                compute=False,
-            ).compute(scheduler=scheduler)
+                compute=in_memory,
+            )
+            if not in_memory:
+                written.compute(scheduler=scheduler)
         _write_files(encoded, partial)
         if path.exists():
             retired = path.parent / f".{path.name}{_RETIRED}{uuid.uuid4().hex[:12]}"

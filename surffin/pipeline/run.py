@@ -17,7 +17,6 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
-from dask.local import get_sync
 
 from surffin.grid import Roi
 from surffin.io.files import write_json
@@ -43,11 +42,11 @@ log = logging.getLogger("surffin")
 SUPPORT_PERCENTILES = (2, 98)
 
 
-def _write(ds, output, chunks, stage: str, scheduler=None) -> Path:
+def _write(ds, output, chunks, stage: str) -> Path:
     """Write a stage's store with its code version (:data:`surffin.pipeline.table.STAGES`)."""
     start = time.perf_counter()
     ds.attrs["surffin_code_version"] = STAGES[stage].version
-    path = write_store(ds, output, chunks=chunks, scheduler=scheduler)
+    path = write_store(ds, output, chunks=chunks)
     log.info("wrote %s in %.2f s", path, time.perf_counter() - start)
     return path
 
@@ -84,8 +83,7 @@ def run_ingest(
         camp = read_campaign(campaign, require_calibration=False, check_views=False)
         ds = ingest_item(camp, item)
         log.info("ingest %s: %d views, cube %s", item, ds.sizes["view"], dict(ds.sizes))
-        # The cube is in memory: writing it needs no worker threads.
-        return _write(ds, store, chunks, "ingest", scheduler=get_sync)
+        return _write(ds, store, chunks, "ingest")
 
 
 def _open_inputs(stores: Mapping[str, str | os.PathLike], chunks: Mapping[str, int] | None) -> dict:
