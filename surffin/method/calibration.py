@@ -1516,7 +1516,7 @@ def calibrate(
 
     def residuals(coef: np.ndarray, penalty: float | None = None) -> xr.Dataset:
         pixels, views, (intensity, distance, angle) = pooled
-        f = instrument_function(coef.reshape(5, -1)[:, pixels], distance, angle)
+        f = instrument_function(coef.reshape(5, -1).take(pixels, axis=1), distance, angle)
         with np.errstate(invalid="ignore", divide="ignore"):
             ratio = intensity / (f * np.cos(angle))
         try:
