@@ -12,12 +12,13 @@ chain per chunk size and its ratio to the first size.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
 import statistics
 import tempfile
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 from _paper import paper_campaign  # benchmarks/_paper.py: this folder is on sys.path when run as a script
@@ -33,6 +34,21 @@ CONFIG = parameters.read_config()
 def quiet_logs() -> None:
     """Keep surffin's warnings only: each job's log (of ``run_stage`` ...) also goes to stderr."""
     logging.getLogger("surffin").addFilter(lambda record: record.levelno >= logging.WARNING)
+
+
+@contextlib.contextmanager
+def calibrated_campaign(path: Path | None) -> Iterator[tuple]:
+    """Yield the campaign at ``path`` (default: the ``paper`` preset rendered), a temporary folder and its calibration.
+
+    The calibration store is fitted into the folder with the config's parameters, as the workflow fits it.
+    """
+    with paper_campaign(path) as (camp, _), tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp)
+        yield (
+            camp,
+            out,
+            run_calibration(camp.path, out / "calibration.zarr", params=parameters.calibration_parameters(CONFIG)),
+        )
 
 
 def chain_parameters(config: Mapping, item) -> dict:
@@ -96,11 +112,7 @@ def main():
     parser.add_argument("--threads", type=int, default=1, help="dask threads (the workflow's per-item jobs: 1)")
     args = parser.parse_args()
     quiet_logs()
-    with paper_campaign(args.campaign) as (camp, _), tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp)
-        calibration = run_calibration(
-            camp.path, out / "calibration.zarr", params=parameters.calibration_parameters(CONFIG)
-        )
+    with calibrated_campaign(args.campaign) as (camp, out, calibration):
         times = {size: [] for size in args.chunks}
         for round_ in range(args.repeat + 1):
             for size in args.chunks:

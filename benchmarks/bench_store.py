@@ -15,18 +15,14 @@ from __future__ import annotations
 import argparse
 import shutil
 import statistics
-import tempfile
 import time
 import warnings
 from pathlib import Path
 
 import xarray as xr
-from _paper import paper_campaign  # benchmarks/_paper.py: this folder is on sys.path when run as a script
-from bench_chunks import CONFIG, quiet_logs, run_chain
+from bench_chunks import calibrated_campaign, quiet_logs, run_chain
 
 from surffin.io.store import DEFAULT_CHUNKS, open_store, write_store
-from surffin.pipeline import parameters
-from surffin.pipeline.run import run_calibration
 
 
 def file_store_write(ds, path: Path) -> None:
@@ -50,11 +46,7 @@ def main():
     parser.add_argument("--repeat", type=int, default=7, help="counted rounds")
     args = parser.parse_args()
     quiet_logs()
-    with paper_campaign(args.campaign) as (camp, _), tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp)
-        calibration = run_calibration(
-            camp.path, out / "calibration.zarr", params=parameters.calibration_parameters(CONFIG)
-        )
+    with calibrated_campaign(args.campaign) as (camp, out, calibration):
         datasets = {}
         for name in args.items:
             stores, _ = run_chain(camp, name, out / "chain", calibration)
