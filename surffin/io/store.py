@@ -241,16 +241,15 @@ def write_store(
     for variable in ds.variables.values():
         variable.attrs = encode_attrs(variable.attrs)
     partial = path.parent / f".{path.name}{_PARTIAL}{uuid.uuid4().hex[:12]}"
-    # A Dataset in memory is encoded into memory and its files written in one go: through zarr's file
-    # store (a thread hop per document and chunk) an item's stores took 1.15-1.65x as long to write
-    # (benchmarks/bench_store.py), the files byte-identical. Dask arrays are written chunk by chunk to
-    # the files, so that memory follows the chunks and any scheduler (a cluster's too) can write them.
+    # A Dataset in memory is encoded into memory at once and its files written in one go: through
+    # zarr's file store (a thread hop per document and chunk) an item's stores took 1.15-1.65x as long
+    # to write (benchmarks/bench_store.py), the files byte-identical, and a delayed write's compute on
+    # dask's default scheduler imported dask.distributed (0.3 s) to look for a client. Dask arrays are
+    # written chunk by chunk to the files: memory follows the chunks, any scheduler (a cluster's) can.
     encoded: dict = {}
     try:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
-            # in memory, written at once: a delayed write's compute, on dask's default scheduler, would
-            # import dask.distributed (0.3 s) to look for a client
             written = ds.to_zarr(
                 zarr.storage.MemoryStore(encoded) if in_memory else partial,
                 mode="w-",
