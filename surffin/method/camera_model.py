@@ -24,7 +24,6 @@ from dataclasses import dataclass
 from functools import cached_property, lru_cache
 
 import numpy as np
-from scipy.optimize import least_squares
 
 __all__ = ["CameraModel", "fit_camera_model", "model_residual"]
 
@@ -271,6 +270,8 @@ def fit_camera_model(xyz: np.ndarray, columns: np.ndarray, rows: np.ndarray) -> 
         return np.concatenate(
             [parameters[0] * xd + parameters[2] - sensor[:, 0], parameters[1] * yd + parameters[3] - sensor[:, 1]]
         )
+
+    from scipy.optimize import least_squares  # 0.4 s to import: kept out of snakemake's start
 
     fit = least_squares(residuals, np.array([fx, fy, cx, cy, *np.zeros(_FITTED)]), x_scale="jac", method="lm")
     model = model_of(fit.x)

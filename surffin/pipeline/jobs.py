@@ -199,8 +199,9 @@ def dask_scheduler(scheduler: str | None, threads: int = 1) -> Iterator[None]:
             yield
 
 
-#: Modules the worker processes import once, when their server starts.
-_PRELOAD = ["surffin.pipeline.run", "surffin.pipeline.analyses"]
+#: Modules the worker processes import once, when their server starts (scipy.optimize: the camera model's
+#: fit imports it when called, so that snakemake's own process, which only names the stages, does not).
+_PRELOAD = ["surffin.pipeline.run", "surffin.pipeline.analyses", "scipy.optimize"]
 _POOL: list[ProcessPoolExecutor] = []
 _POOL_LOCK = threading.Lock()
 
