@@ -265,6 +265,9 @@ def test_the_plan_reads_every_view_s_pixels_once_and_again_when_the_file_changes
     plan.keep_checked()
     record = json.loads((tmp_path / "out" / CHECKED_VIEWS).read_text())
     assert record == plan.checked and record["camera"] == camp.camera.settings
+    written = (tmp_path / "out" / CHECKED_VIEWS).stat()
+    Plan.read(raw, config).keep_checked()  # the record is current: it is not written again
+    assert (tmp_path / "out" / CHECKED_VIEWS).stat().st_ino == written.st_ino
     scene, wall = camp.scenes["T1"].views[1], plan.repeat.wall[0]
     # a recorded file of the same size and time is not read again: broken pixels there pass ...
     stat = scene.stat()

@@ -59,12 +59,15 @@ class Plan:
         The repeat calibration set, when configured and present.
     checked : dict
         What :func:`~surffin.io.campaign.check_pixels` returned for every view file a run reads.
+    recorded : dict or None
+        The processed folder's :data:`CHECKED_VIEWS` when the plan was read (None: none usable).
     """
 
     campaign: Campaign
     config: Mapping
     repeat: Calibration | None = None
     checked: dict = field(default_factory=dict)
+    recorded: dict | None = None
 
     @classmethod
     def read(cls, path, config: Mapping) -> Plan:
@@ -94,12 +97,12 @@ class Plan:
         present = present and all((camp.root / folder).is_dir() for folder in folders.values())
         repeat = calibration_set(camp, folders["wall"], folders["reference"]) if present else None
         views = [*camp.view_files, *(() if repeat is None else (*repeat.wall, *repeat.reference.views))]
-        checked = check_pixels(camp, views, _record(config))
-        return cls(camp, config, repeat, checked)
+        recorded = _record(config)
+        return cls(camp, config, repeat, check_pixels(camp, views, recorded), recorded)
 
     def keep_checked(self) -> None:
         """Record the checked view files (:data:`CHECKED_VIEWS`): the next run reads only new or changed ones."""
-        if self.checked != _record(self.config):
+        if self.checked != self.recorded:
             write_json(Path(self.config["processed"], CHECKED_VIEWS), self.checked)
 
     # --- paths -------------------------------------------------------------------------------
