@@ -29,8 +29,9 @@ used (``given`` or ``estimated``) with its residual (pixels), and the time.
 Table 8, :func:`surffin.method.stages.registration_stage` per item (the item's intensity and z standing in for its
 reflectance and AOI), single-threaded: median CPU seconds of ``--repeat`` runs (at least 5) of the stage and of its
 parts, the maps and :func:`register`. ``--baseline DIR`` (a folder holding another revision's registration.py and
-optionally camera_model.py, e.g. from ``git show``) runs that code alternately in the same process: the speed-ups
-and the largest relative differences of the stage's maps and values (and whether their NaN patterns agree).
+optionally camera_model.py, e.g. from ``git show``) runs that code alternately in the same process: the speed-ups,
+the largest relative differences of the stage's maps and values (and whether their NaN patterns agree) and whether
+the two outputs are identical (values, NaNs, dtypes and attrs: ``xarray.Dataset.identical``).
 """
 
 from __future__ import annotations
@@ -406,7 +407,7 @@ def stage_table(items, repeat: int, baseline: Path | None) -> None:
     header = f"{'item':5} {'method':10} {'stage':>6} {'maps':>6} {'register':>8}"
     if baseline is not None:
         header += f" {'base stage':>10} {'x stage':>7} {'x maps':>6} {'x reg.':>6} {'max rel maps':>12}"
-        header += f" {'max rel values':>14} {'NaN same':>8}"
+        header += f" {'max rel values':>14} {'NaN same':>8} {'identical':>9}"
     print(header)
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
@@ -436,6 +437,7 @@ def stage_table(items, repeat: int, baseline: Path | None) -> None:
                     line += f" {old['stage']:10.3f} {old['stage'] / now['stage']:7.2f} {old['maps'] / now['maps']:6.2f}"
                     line += f" {old['register'] / now['register']:6.2f} {maps[0]:12.1e} {values[0]:14.1e}"
                     line += f" {'yes' if maps[1] and values[1] else 'NO':>8}"
+                    line += f" {'yes' if outputs['current'].identical(outputs['baseline']) else 'NO':>9}"
                 print(line)
     finally:
         cv2.setNumThreads(threads)
