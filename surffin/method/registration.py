@@ -1166,10 +1166,10 @@ def _pose_refiner(ingest, xyz, distance, points, ref, grid, opts, camera, record
     normals = np.ascontiguousarray(plane_normals(xyz[ref], _REFINE_WINDOW))
     target = np.where(np.isfinite(normals), points, np.nan)
     # texture samples whose normalisation and blur windows keep off depth edges: the edges move
-    # with the parallax between views, and the surfaces beside them are seen differently
+    # with the parallax between views, and the surfaces beside them are seen differently (at the samples only)
     inside = np.minimum(
-        cv2.distanceTransform(np.isfinite(normals[..., 0]).astype(np.uint8), cv2.DIST_L2, 5),
-        _interior(_norm(points), *tolerances),
+        cv2.distanceTransform(np.isfinite(normals[..., 0]).astype(np.uint8), cv2.DIST_L2, 5)[::stride, ::stride],
+        _interior(_norm(points), *tolerances)[::stride, ::stride],
     )
     texture = _texture(intensity[ref], valid[ref], _REFINE_CONTRAST, np.float32)
     sample = points[::stride, ::stride].reshape(-1, 3)
@@ -1178,7 +1178,7 @@ def _pose_refiner(ingest, xyz, distance, points, ref, grid, opts, camera, record
     # per level, the samples with a texture (the others never give a texture residual) and their texture
     texture_samples = []
     for blur in _REFINE_LEVELS:
-        values = np.where(inside > _REFINE_CONTRAST + blur, _blurred(texture, blur), np.nan)[::stride, ::stride]
+        values = np.where(inside > _REFINE_CONTRAST + blur, _blurred(texture, blur)[::stride, ::stride], np.nan)
         values = values.ravel()[known]
         texture_samples.append((sample[np.isfinite(values)], values[np.isfinite(values)]))
     origin = (grid[1][0], grid[0][0])
