@@ -11,11 +11,22 @@ absolute times), and, per item, the median relative error of R0 and n against th
 simulator's truth on the specimen interiors (roi pixels; the scene's labelled
 pixels) and the scene's accuracy before and after the label filter (the
 configuration's training cap and label parameters).
+
+``--stores PROCESSED --baseline TREE`` (a workflow's processed stores, a checkout of another revision)
+instead times the per-item stages of :data:`STAGES` in memory on the stores' items (``--items``, default
+all): each stage runs on the inputs and with the parameters its store records, in a process of each tree
+in turn (``--repeat`` rounds after a warm-up call per item), and prints the median CPU seconds per item of
+each tree, their ratio, and whether the outputs of the two are identical (``xarray.testing.assert_identical``).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import pickle
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -30,9 +41,12 @@ from bench_chunks import CONFIG, quiet_logs, run_chain
 from surffin.io.campaign import read_truth
 from surffin.io.store import open_store
 from surffin.method.classify import score, training_set
-from surffin.method.stages import labels_stage
+from surffin.method.stages import features_stage, labels_stage, reflectance_stage
 from surffin.pipeline import parameters
 from surffin.pipeline.run import run_calibration
+
+#: The stages ``--stores`` times, by the name of the store they write.
+STAGES = {"reflectance": reflectance_stage, "features": features_stage}
 
 
 def chain(camp, name, folder, calibration, repeat, threads):
@@ -56,14 +70,76 @@ def interior(truth: xr.Dataset, item) -> xr.DataArray:
     return mask
 
 
+def time_stages(processed: Path, items: list[str], outputs: Path | None) -> dict:
+    """Time each stage of :data:`STAGES` on each item in this process; CPU seconds by stage and item.
+
+    The inputs are read into memory first, as a job reads an item that fits in one chunk; the stage
+    runs once untimed (imports, caches), then once timed. With ``outputs``, the stages' outputs are
+    pickled there (by stage and item).
+    """
+    seconds, results = {}, {}
+    for stage, function in STAGES.items():
+        for item in items:
+            written = open_store(processed / stage / f"{item}.zarr")
+            inputs = {name: open_store(path).load() for name, path in written.attrs["surffin_inputs"].items()}
+            results[stage, item] = function(**inputs, **written.attrs["surffin_parameters"])
+            start = time.process_time()
+            function(**inputs, **written.attrs["surffin_parameters"])
+            seconds.setdefault(stage, {})[item] = time.process_time() - start
+    if outputs is not None:
+        outputs.write_bytes(pickle.dumps(results))
+    return seconds
+
+
+def compare_trees(processed: Path, baseline: Path, items: list[str], repeat: int) -> None:
+    """Print the CPU seconds per item of each stage, ``baseline``'s tree against this one, and if they agree."""
+    trees = {"old": baseline, "new": Path(__file__).resolve().parents[1]}
+    seconds = {label: {stage: [] for stage in STAGES} for label in trees}
+    with tempfile.TemporaryDirectory() as tmp:
+        for round_ in range(repeat):
+            for label, tree in trees.items():
+                outputs = Path(tmp, label) if round_ == 0 else None
+                command = [sys.executable, __file__, "--stores", str(processed), "--time-only", "--items", *items]
+                command += ["--outputs", str(outputs)] if outputs else []
+                env = {**os.environ, "PYTHONPATH": str(tree)}
+                runs = json.loads(subprocess.run(command, env=env, check=True, capture_output=True, text=True).stdout)
+                for stage, by_item in runs.items():
+                    seconds[label][stage].append(sum(by_item.values()) / len(by_item))
+        results = {label: pickle.loads(Path(tmp, label).read_bytes()) for label in trees}
+    print(f"{len(items)} items of {processed}, CPU s per item, medians of {repeat} alternating rounds")
+    print(f"{'stage':14s}{'old':>9s}{'new':>9s}{'new/old':>9s}  outputs")
+    for stage in STAGES:
+        different = []
+        for item in items:
+            try:
+                xr.testing.assert_identical(results["old"][stage, item], results["new"][stage, item])
+            except AssertionError:
+                different.append(item)
+        old, new = (float(np.median(seconds[label][stage])) for label in trees)
+        agree = f"differ for {different}" if different else "identical"
+        print(f"{stage:14s}{old:9.4f}{new:9.4f}{new / old:9.2f}  {agree}")
+
+
 def main():
     """Calibrate, run each item's chain, classify the scene and print the tables."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--campaign", type=Path, help="a rendered paper campaign (truth in <campaign>-truth)")
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--threads", type=int, default=2, help="dask threads of each stage")
+    parser.add_argument("--stores", type=Path, help="a workflow's processed stores: time the stages of STAGES")
+    parser.add_argument("--baseline", type=Path, help="with --stores: the tree of the revision to compare with")
+    parser.add_argument("--items", nargs="+", help="with --stores: the items (default: all)")
+    parser.add_argument("--time-only", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--outputs", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
     quiet_logs()
+    if args.stores:
+        items = args.items or sorted(path.stem for path in (args.stores / "features").glob("*.zarr"))
+        if args.time_only:
+            print(json.dumps(time_stages(args.stores, items, args.outputs)))
+        else:
+            compare_trees(args.stores, args.baseline, items, args.repeat)
+        return
     with paper_campaign(args.campaign) as (camp, truth_dir), tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
         calibration = run_calibration(
