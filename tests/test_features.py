@@ -297,9 +297,14 @@ def views_of_an_item(shape=(18, 22), seed=3):
 
 
 @pytest.mark.parametrize("chunks", [None, {"y": 7, "x": 9}])
-def test_features_stage_takes_the_variability_from_the_first_view_that_has_it(chunks):
+@pytest.mark.parametrize(
+    ("roi", "blind"), [(None, None), (Roi((Y0 + 4, Y0 + 12), (X0 + 3, X0 + 15)), None), (None, "b"), (None, "c")]
+)
+def test_features_stage_takes_the_variability_from_the_first_view_that_has_it(chunks, roi, blind):
     registered, reflectance, aoi = views_of_an_item()
-    order = views_by_incidence(aoi["aoi"])
+    if blind:  # a view whose maps send no pixel anywhere
+        registered["map_x"].loc[{"view": blind}] = np.nan
+    order = views_by_incidence(aoi["aoi"], roi)
     assert order == ["a", "b", "c"]
     own = xr.concat(
         [
@@ -313,11 +318,14 @@ def test_features_stage_takes_the_variability_from_the_first_view_that_has_it(ch
         ],
         dim="view",
     )
-    expected, source = first_available(warp(own, registered[["map_x", "map_y"]].sel(view=order)))
-    assert set(np.unique(source.values)) == {-1, 0, 1, 2}
+    maps = registered[["map_x", "map_y"]].sel(view=order)
+    if roi is not None:
+        maps = select_roi(maps, roi.grown(2))
+    expected, source = first_available(warp(own, maps))
+    assert set(np.unique(source.values)) == {-1, 0, 1, 2} - {order.index(blind) if blind else None}
     if chunks:
         registered, reflectance, aoi = (ds.chunk(chunks) for ds in (registered, reflectance, aoi))
-    ds = features_stage(registered, reflectance, aoi, size=5, variability_size=5).compute()
+    ds = features_stage(registered, reflectance, aoi, roi=roi, size=5, variability_size=5).compute()
     np.testing.assert_array_equal(ds["variability"].values, expected.values.astype(np.float32))
     np.testing.assert_array_equal(ds["variability_view"].values, source.values)
     assert ds["variability"].attrs["noise_corrected"] == 1
@@ -361,6 +369,33 @@ def test_variability_is_the_local_std_of_the_corrected_reflectance(chunks):
     assert out.attrs["noise_corrected"] == 1
     assert out.attrs["min_count"] == expected.attrs["min_count"]
     np.testing.assert_allclose(out.values, expected.values, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("chunks", [None, {"y": 9, "x": 11}])
+@pytest.mark.parametrize(
+    "region",
+    [
+        Roi((Y0 + 5, Y0 + 17), (X0 + 20, X0 + 31)),
+        Roi((Y0 - 4, Y0 + 3), (X0 + 30, X0 + 60)),
+        Roi((Y0 + 10, Y0 + 11), (X0 + 7, X0 + 8)),
+        Roi((Y0, Y0 + 30), (X0, X0 + 40)),
+        Roi((Y0 + 6, Y0 + 6), (X0, X0 + 40)),
+        Roi((0, 10), (0, 10)),
+    ],
+)
+def test_variability_in_a_region_is_that_of_the_whole_grid(chunks, region):
+    # a bright gradient: the sums of squares are centred on the whole image's mean, which a part's would change
+    reflectance, aoi = lambertian_view(shape=(30, 40), rho=50.0, texture=0.5)
+    reflectance = (reflectance * (1 + 0.1 * reflectance["x"])).where(holey_image((30, 40), holes=60) > 0)
+    noise = xr.full_like(reflectance, 0.01).where(reflectance["y"] != reflectance["y"][12])
+    if chunks:
+        reflectance, aoi, noise = (a.chunk(chunks) for a in (reflectance, aoi, noise))
+    whole = variability(reflectance, aoi, relative_noise=noise).values
+    out = variability(reflectance, aoi, relative_noise=noise, region=region)
+    y, x = np.meshgrid(reflectance["y"], reflectance["x"], indexing="ij")
+    inside = (y >= region.y[0]) & (y < region.y[1]) & (x >= region.x[0]) & (x < region.x[1])
+    np.testing.assert_array_equal(out.values, np.where(inside, whole, np.nan))
+    assert out.attrs == variability(reflectance, aoi, relative_noise=noise).attrs
 
 
 def test_variability_needs_one_grid():

@@ -160,17 +160,49 @@ def _smooth_image(image: np.ndarray, weights: np.ndarray, min_weight: float) -> 
 
 
 def _local_std_image(
-    image: np.ndarray, noise: np.ndarray | None = None, *, size: int, ddof: int, min_count: int
+    image: np.ndarray,
+    noise: np.ndarray | None = None,
+    *,
+    size: int,
+    ddof: int,
+    min_count: int,
+    region: tuple[slice, slice] | None = None,
 ) -> np.ndarray:
     """Compute the standard deviation (H, W) float64 over the finite pixels of each ``size x size`` box.
 
     With ``noise`` (a variance image), the box's mean noise variance is taken
     out of the variance first; a pixel without a noise variance is missing.
+    With ``region`` (row and column slices, their start before their stop in the
+    image), only its pixels get a value, the whole image's to the bit, NaN elsewhere:
+    the image is centred as a whole, and the box sums, which read nothing
+    outside a box, run on the region and the ``size // 2`` pixels around it.
     """
     valid = np.isfinite(image)
     if noise is not None:
         valid &= np.isfinite(noise)
     centre = image[valid].mean() if valid.any() else 0.0
+    if region is None:
+        return _box_std(image, noise, valid, centre, size=size, ddof=ddof, min_count=min_count)
+    out = np.full(image.shape, np.nan)
+    around = tuple(slice(max(part.start - size // 2, 0), part.stop + size // 2) for part in region)
+    inner = tuple(slice(part.start - big.start, part.stop - big.start) for part, big in zip(region, around))
+    part_noise = None if noise is None else noise[around]
+    box = _box_std(image[around], part_noise, valid[around], centre, size=size, ddof=ddof, min_count=min_count)
+    out[region] = box[inner]
+    return out
+
+
+def _box_std(
+    image: np.ndarray,
+    noise: np.ndarray | None,
+    valid: np.ndarray,
+    centre: float,
+    *,
+    size: int,
+    ddof: int,
+    min_count: int,
+) -> np.ndarray:
+    """:func:`_local_std_image` of the pixels ``valid`` of ``image`` centred on ``centre``."""
     values = image - centre
     np.copyto(values, 0.0, where=~valid)
     ones = np.ones(size)
@@ -196,12 +228,20 @@ def _local_std_image(
 
 
 def _variability_image(
-    reflectance: np.ndarray, aoi: np.ndarray, relative_noise: np.ndarray | None = None, **kwargs
+    reflectance: np.ndarray,
+    aoi: np.ndarray,
+    relative_noise: np.ndarray | None = None,
+    *,
+    region: tuple[slice, slice] | None = None,
+    **kwargs,
 ) -> np.ndarray:
     """:func:`_local_std_image` (H, W) of the Lambert-corrected reflectance ``R / cos(aoi)`` (:func:`variability`).
 
     With ``relative_noise``, the variance of the corrected reflectance's noise is taken out.
+    An empty ``region`` is all NaN, computed from nothing.
     """
+    if region is not None and any(part.start >= part.stop for part in region):
+        return np.full(reflectance.shape, np.nan)
     cosine = aoi.astype(np.float64)
     np.cos(cosine, out=cosine)
     corrected = reflectance / cosine
@@ -210,7 +250,7 @@ def _variability_image(
     if relative_noise is not None:
         variance = np.multiply(corrected, relative_noise)
         np.square(variance, out=variance)
-    return _local_std_image(corrected, variance, **kwargs)
+    return _local_std_image(corrected, variance, region=region, **kwargs)
 
 
 def _per_image(*data: np.ndarray, kernel, out_dtype, **kwargs) -> np.ndarray:
@@ -831,6 +871,7 @@ def variability(
     ddof: int = 1,
     min_count: int | None = None,
     relative_noise: xr.DataArray | None = None,
+    region: Roi | None = None,
 ) -> xr.DataArray:
     """Spatial reflectance variability of one view: local std of ``R / cos(theta)``.
 
@@ -848,6 +889,10 @@ def variability(
         (:func:`local_std`'s ``noise_variance``), so that the feature measures
         the surface, not how weak its return was: without it the same finish
         seen from farther off looks rougher.
+    region : Roi, optional
+        The pixels wanted, by their sensor coordinates (the grid's ``y`` and ``x``,
+        increasing); the others are NaN. In memory, only the boxes of those are
+        summed, and their values are the whole grid's to the bit.
 
     Returns
     -------
@@ -866,16 +911,18 @@ def variability(
             f"variability: reflectance, aoi and relative_noise must be on the same (y, x) grid ({exc})"
         ) from exc
     size, ddof, min_count = _std_window(size, ddof, min_count)
+    images = [reflectance, aoi, *noise]
+    lazy = any(image.chunks for image in images)
+    part = {}
+    if region is not None and not lazy:
+        spans = ((reflectance[dim].values, bounds) for dim, bounds in (("y", region.y), ("x", region.x)))
+        part["region"] = tuple(slice(*(int(i) for i in np.searchsorted(coord, bounds))) for coord, bounds in spans)
     out = image_filter(
-        [reflectance, aoi, *noise],
-        _variability_image,
-        size // 2,
-        np.nan,
-        np.float64,
-        size=size,
-        ddof=ddof,
-        min_count=min_count,
+        images, _variability_image, size // 2, np.nan, np.float64, size=size, ddof=ddof, min_count=min_count, **part
     )
+    if region is not None and lazy:  # computed chunk by chunk on the whole grid
+        rows = (out["y"] >= region.y[0]) & (out["y"] < region.y[1])
+        out = out.where(rows & (out["x"] >= region.x[0]) & (out["x"] < region.x[1]))
     out.attrs = {
         "units": "1",
         "long_name": f"spatial reflectance variability: local standard deviation of R / cos(AOI), {size}x{size} pixels"

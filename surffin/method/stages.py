@@ -157,6 +157,23 @@ def registration_stage(
     return _single(registered)
 
 
+def _read_pixels(map_x: np.ndarray, map_y: np.ndarray, grid: Roi) -> Roi:
+    """Return pixels of ``grid`` that hold all those a bilinear warp to the sensor positions ``map_x``, ``map_y`` reads.
+
+    A position reads the pixels around it: the box of the positions' floors grown by one pixel
+    holds them. Empty (at the grid's corner) when no position is finite or near the grid.
+    """
+    finite = np.isfinite(map_x) & np.isfinite(map_y)
+    corner = Roi((grid.y[0], grid.y[0]), (grid.x[0], grid.x[0]))
+    if not finite.any():
+        return corner
+    y, x = (np.floor(positions[finite]) for positions in (map_y, map_x))
+    try:
+        return Roi.spanning((y.min(), y.max()), (x.min(), x.max())).grown(1).clip(grid)
+    except ValueError:  # no position near the grid
+        return corner
+
+
 def _first_variability(
     reflectance: xr.Dataset, aoi: xr.Dataset, maps: xr.Dataset, order: list, *, size: int
 ) -> tuple[xr.DataArray, xr.DataArray]:
@@ -165,8 +182,9 @@ def _first_variability(
     What :func:`~surffin.method.features.first_available` of all the views' warped
     :func:`~surffin.method.features.variability` gives, with less work: the views after the
     first are warped only onto the pixels that the first leaves without a value (a few
-    percent). The warp of a pixel does not depend on the others', so the values are the
-    same to the bit.
+    percent), and each view's variability is computed only on the pixels its warp reads
+    (its ``region``; a view that reads none is skipped). The warp of a pixel does not
+    depend on the others', so the values are the same to the bit.
 
     Parameters
     ----------
@@ -188,32 +206,40 @@ def _first_variability(
         Position in ``order`` of the view each value comes from, -1 where none.
     """
     noise = reflectance.get("reflectance_noise")
-    own = xr.concat(
-        [
+    grid = _grid(reflectance)
+
+    def own(views: list, regions: list[Roi]) -> xr.DataArray:
+        """Return the variability (view, y, x) of ``views``, each on its region (NaN elsewhere)."""
+        images = [
             variability(
                 reflectance["reflectance"].sel(view=v),
                 aoi["aoi"].sel(view=v),
                 size=size,
                 relative_noise=None if noise is None else noise.sel(view=v),
+                region=region,
             )
-            for v in order
-        ],
-        dim=xr.DataArray(order, dims="view", name="view"),
-    )
+            for v, region in zip(views, regions)
+        ]
+        return xr.concat(images, dim=xr.DataArray(views, dims="view", name="view"))
+
     maps = maps.sel(view=order).transpose("view", "y", "x")
-    first = warp(own[:1], maps.isel(view=[0])).isel(view=0, drop=True).compute()
+    reads = _read_pixels(maps["map_x"].values[0], maps["map_y"].values[0], grid)
+    first = warp(own(order[:1], [reads]), maps.isel(view=[0])).isel(view=0, drop=True).compute()
     values = first.values.flatten()
     source = np.where(np.isfinite(values), np.int16(0), np.int16(-1))
     missing = np.flatnonzero(source < 0)
     if missing.size and len(order) > 1:
         # the missing pixels as one row of a grid of their own: warp samples each at its map position
-        later = maps.isel(view=slice(1, None))
-        flat = {name: later[name].values.reshape(len(order) - 1, 1, -1) for name in maps}
-        row = xr.Dataset({name: (later[name].dims, a[..., missing]) for name, a in flat.items()}, later["view"].coords)
-        filled, position = first_available(warp(own[1:], row))
-        position = position.values.ravel()
-        values[missing] = filled.values.ravel()
-        source[missing] = np.where(position < 0, position, position + 1)
+        flat = {name: maps[name].values.reshape(len(order), 1, -1)[..., missing] for name in maps}
+        regions = {k: _read_pixels(flat["map_x"][k], flat["map_y"][k], grid) for k in range(1, len(order))}
+        # a view whose maps send no missing pixel near its grid has a value for none
+        seen = [k for k, region in regions.items() if all(region.shape)]
+        if seen:
+            row = xr.Dataset({name: (maps[name].dims, a[seen]) for name, a in flat.items()}, maps["view"][seen].coords)
+            filled, position = first_available(warp(own([order[k] for k in seen], [regions[k] for k in seen]), row))
+            position = position.values.ravel()
+            values[missing] = filled.values.ravel()
+            source[missing] = np.where(position < 0, position, np.asarray(seen)[position])
     shape = first.shape
     return first.copy(data=values.reshape(shape)), xr.DataArray(source.reshape(shape), first.coords, first.dims)
 
