@@ -795,6 +795,27 @@ def test_correction_lookup_matches_scipy_regular_grid_interpolation():
     assert np.isnan(got[~finite]).all() and (~finite).sum() == 6
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_correction_lookup_is_scipy_map_coordinates_to_the_bit(dtype):
+    """Positions on, between and beyond the nodes, NaN and inf, over several blocks of pixels."""
+    rng = np.random.default_rng(11)
+    distances, aois = np.linspace(0.25, 1.15, 13), np.linspace(0.0, 1.2, 9)
+    table = correction_table(lambda d, t: rng.lognormal(0.0, 0.3, (d.size, t.size)), distances, aois)
+    distance, aoi = rng.uniform(0.1, 1.4, (7, 50_000)), rng.uniform(-0.2, 1.5, (7, 50_000))
+    distance[1], aoi[2] = rng.choice(distances, 50_000), rng.choice(aois, 50_000)
+    distance[3, :100], aoi[3, 100:200], aoi[4, :100] = np.nan, np.inf, -np.inf
+    distance, aoi = distance.astype(dtype), aoi.astype(dtype)
+    index = [
+        (np.clip(values.astype(np.float64), nodes[0], nodes[-1]) - nodes[0]) / (nodes[1] - nodes[0])
+        for values, nodes in ((distance, distances), (aoi, aois))
+    ]
+    finite = np.isfinite(index[0]) & np.isfinite(index[1])
+    positions = [np.where(finite, position, 0.0) for position in index]
+    expected = scipy.ndimage.map_coordinates(table.values, positions, order=1, mode="nearest", prefilter=False)
+    np.testing.assert_array_equal(correction_factor(table, distance, aoi), np.where(finite, expected, np.nan))
+    assert (~finite).sum() == 100  # NaN; inf is clamped to the grid
+
+
 def test_instrument_truth_tabulates_the_rendered_systematics_for_the_correction_lookup():
     """The simulator's truth of residual systematics reads back through correction_factor (the ceiling's c)."""
     instrument = surffin.simulate.draw_instrument(
