@@ -400,6 +400,24 @@ def test_reflectance_is_intensity_over_k_f_on_the_crop():
     assert np.isfinite(out.values).sum() == out.size - 5
 
 
+@pytest.mark.parametrize("correction", [False, True])
+def test_reflectance_is_the_arithmetic_of_eq_2_on_data_arrays_to_the_bit(correction):
+    """As a store holds them: float32 intensity, distance and AOI (d^2 in float32), float64 coefficients."""
+    coef, arrays = reflectance_inputs()
+    intensity, distance, aoi = (array.astype(np.float32) for array in arrays)
+    distance[0, 7, :9] = np.nan
+    table = correction_table(
+        lambda d, t: 1.0 + 0.2 * d - 0.3 * t * t, np.arange(0.3, 1.01, 0.05), np.arange(0.0, 0.9, 0.1)
+    )
+    f = instrument_function(coef.sel(y=intensity["y"], x=intensity["x"]), distance, aoi)
+    if correction:
+        f = f * correction_factor(table, distance, aoi)
+    expected = (intensity / (2.0 * f)).where(f > 0).transpose(*intensity.dims)
+    out = reflectance(intensity, distance, aoi, coef, 2.0, table if correction else None)
+    np.testing.assert_array_equal(out.values, expected.values)
+    assert out.dtype == np.float64 and np.isnan(out.values).sum() == 9 + 3 + 2  # d, f < 0 at (12, 15), I and AOI
+
+
 @pytest.mark.parametrize("scheduler", ["synchronous", "threads"])
 def test_reflectance_is_lazy_on_dask_and_equals_numpy(scheduler):
     coef, arrays = reflectance_inputs()

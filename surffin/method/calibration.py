@@ -1705,10 +1705,21 @@ def reflectance(
             f"{int(intensity.y.max())}, x {int(intensity.x.min())}..{int(intensity.x.max())}); use a calibration "
             f"of the same camera on its full sensor"
         ) from exc
-    f = instrument_function(local, distance, aoi)
-    if correction is not None:
-        f = f * correction_factor(correction, distance, aoi)
-    out = (intensity / (scale_k * f)).where(f > 0).transpose(*intensity.dims)
+    factors = [] if correction is None else [correction_factor(correction, distance, aoi)]
+
+    def kernel(counts, d, theta, *arrays):
+        # R = I / (k f c), NaN where f c <= 0: the arithmetic of eq. 2 on the DataArrays, in numpy
+        f = instrument_function(arrays[: len(TERMS)], d, theta)
+        for factor in arrays[len(TERMS) :]:
+            f *= factor
+        out = counts / (scale_k * f)
+        np.copyto(out, np.nan, where=~(f > 0))
+        return out
+
+    terms = [local.sel(term=term, drop=True) for term in TERMS]
+    out = xr.apply_ufunc(
+        kernel, intensity, distance, aoi, *terms, *factors, dask="parallelized", output_dtypes=[np.float64]
+    ).transpose(*intensity.dims)
     out.name = "reflectance"
     out.attrs = {"units": "1", "long_name": "absolute reflectance at the observed angle of incidence"}
     return out
