@@ -1693,7 +1693,7 @@ def reflectance(
     if missing:
         raise ValueError(f"intensity and coef need {missing} coordinates (sensor indices) to be aligned")
     try:
-        intensity, distance, aoi = xr.align(intensity, distance, aoi, join="exact")
+        intensity, distance, aoi = xr.align(intensity, distance, aoi, join="exact", copy=False)
     except ValueError as exc:
         raise ValueError(f"intensity, distance and aoi must share their coordinates: {exc}") from exc
     try:
