@@ -3,11 +3,14 @@
 Figures are drawn on :class:`matplotlib.figure.Figure` objects, never through
 pyplot: no global figure registry and no display, so they render with the Agg
 canvas from any thread or job. Matplotlib is imported only when a figure is
-drawn.
+drawn. Made, drawn and dropped within :func:`collector_paused`, a figure's
+objects do not weigh on the garbage collector's later passes.
 """
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import io
 import logging
 import os
@@ -19,7 +22,7 @@ import numpy as np
 
 from surffin.io.files import write_atomically
 
-__all__ = ["DPI", "DRAWING", "figure", "save", "colormap", "subsample", "message"]
+__all__ = ["DPI", "DRAWING", "figure", "save", "colormap", "subsample", "message", "collector_paused"]
 
 log = logging.getLogger("surffin")
 
@@ -86,6 +89,25 @@ def save(fig, path: str | os.PathLike, *, dpi: float = DPI) -> Path:
             content = buffer.getvalue()
     write_atomically(path, content)
     return path
+
+
+@contextlib.contextmanager
+def collector_paused():
+    """Pause Python's cyclic garbage collector in the block (figures made, drawn and dropped there).
+
+    A figure is tens of thousands of objects in reference cycles. Collected while it lives, they outlive the
+    collections and reach the oldest generation, whose collections go through the whole heap of a worker
+    (about 0.1 s each) and come the more often: they cost a feature figure about a tenth of its CPU time.
+    With the collector paused, a dropped figure is still in the youngest generation, freed by the next
+    collection of that one. On leaving, the collector is enabled again if it was.
+    """
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
 
 
 def _png(rgba: np.ndarray, dpi: float = DPI) -> bytes:

@@ -43,7 +43,7 @@ from surffin.method.features import UNCERTAINTY, select_roi, smooth
 from surffin.method.scattering import scattering_model
 from surffin.paper import MEAN_R2 as PAPER_MEAN_R2
 from surffin.paper import VARIABILITY_PERCENT as PAPER_VARIABILITY
-from surffin.report.canvas import colormap, figure, message, save, subsample
+from surffin.report.canvas import collector_paused, colormap, figure, message, save, subsample
 
 __all__ = [
     "FIGURE_INPUTS",
@@ -954,7 +954,8 @@ def write_figures(
 ) -> list[Path]:
     """Open the stores and write the requested figures and tables.
 
-    The workflow's job is :func:`surffin.pipeline.analyses.run_figures`.
+    The workflow's job is :func:`surffin.pipeline.analyses.run_figures`. Each file is made with Python's garbage
+    collector paused (:func:`~surffin.report.canvas.collector_paused`).
 
     Parameters
     ----------
@@ -1018,6 +1019,7 @@ def write_figures(
     written = []
     for kind, value in outputs.items():
         for path in _paths(value):
-            written.append(makers[kind](path))
+            with collector_paused():  # each figure apart: one figure's garbage at most waits for the collector
+                written.append(makers[kind](path))
             log.info("figures: wrote %s (%s)", path, kind)
     return written
