@@ -1,7 +1,11 @@
 """Figures and tables of the report: each from small synthetic stores, the calibration's kept samples, the report."""
 
+import gc
 import io
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import matplotlib
@@ -30,7 +34,7 @@ from surffin.method.roughness import roughness_relation
 from surffin.pipeline.analyses import run_figures
 from surffin.pipeline.run import run_roughness_map
 from surffin.report import figures
-from surffin.report.canvas import DPI, DRAWING, figure, save
+from surffin.report.canvas import DPI, DRAWING, collector_paused, figure, save
 from surffin.report.figures import (
     FIGURE_KINDS,
     accuracy_table,
@@ -288,6 +292,66 @@ def test_feature_figure_keeps_its_scales_roi_and_legend(tmp_path, monkeypatch):
     (legend,) = [ax.get_legend() for ax in fig.axes if ax.get_legend()]
     entries = [text.get_text() for text in legend.get_texts()]
     assert entries[:3] == ["view v00", "view v01", "view v02"] and entries[3].startswith("model at median R0 = ")
+
+
+def test_a_feature_figure_drawn_after_others_is_the_one_drawn_alone(tmp_path):
+    # Each item's figure drawn after other items in this process (as in a worker), byte for byte the one a new
+    # process draws: nothing of a figure is left for the next, of the same shape and panels or not.
+    features, registered = item_stores()
+    uncertain = features.assign(R0_uncertainty=0.01 * features["R0"], n_uncertainty=0.02 * features["n"])
+    scene = item_stores("scene")[0].assign(R0=features["R0"] * 0.9, n=features["n"] + 0.1)
+    scene.attrs["item"] = "T1"
+    items = {
+        "specimen": (features, ROI),
+        "uncertain": (uncertain, ROI),
+        "narrow": (features.isel(x=slice(0, 10)), Roi((6, 18), (8, 12))),
+        "scene": (scene, None),
+    }
+    inputs = {"registered": str(write_store(registered, tmp_path / "registered.zarr"))}
+    for name, (store, roi) in items.items():
+        inputs[name] = str(write_store(store, tmp_path / f"{name}.zarr"))
+
+    def draw(name, path):
+        run_figures({"features": path}, features=inputs[name], registered=inputs["registered"], roi=items[name][1])
+        return Path(path).read_bytes()
+
+    drawn = [
+        (name, draw(name, tmp_path / f"{index}-{name}.png"))
+        for index, name in enumerate(("scene", "uncertain", "narrow", "specimen", "scene"))
+    ]
+    script = (
+        "import json, sys\nfrom surffin.pipeline.analyses import run_figures\n"
+        "run_figures({'features': sys.argv[1]}, features=sys.argv[2], registered=sys.argv[3], "
+        "roi=json.loads(sys.argv[4]))"
+    )
+    root = str(Path(surffin.__file__).resolve().parents[1])  # this surffin in the new process too
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (root, os.environ.get("PYTHONPATH"))))}
+    alone = {}
+    for name in ("specimen", "scene"):
+        roi = json.dumps(None if items[name][1] is None else items[name][1].as_mapping())
+        path = tmp_path / f"alone-{name}.png"
+        subprocess.run(
+            [sys.executable, "-c", script, path, inputs[name], inputs["registered"], roi], check=True, env=env
+        )
+        alone[name] = path.read_bytes()
+    assert [content == alone[name] for name, content in drawn if name in alone] == [True] * 3
+    assert drawn[0][1] != drawn[3][1]
+
+
+def test_the_collector_is_paused_for_a_figure_only():
+    with collector_paused():
+        assert not gc.isenabled()
+    assert gc.isenabled()
+    with pytest.raises(ValueError), collector_paused():
+        raise ValueError
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        with collector_paused():
+            pass
+        assert not gc.isenabled()  # left as it was
+    finally:
+        gc.enable()
 
 
 @pytest.mark.parametrize("dpi", [DPI, 100])
