@@ -11,13 +11,17 @@ matplotlib alone saving an empty figure of 19 x 9.5 in as PNG. Prints per kind
 the median CPU seconds of the process (``time.process_time``) over the rounds and its ratio to the
 reference. With ``--against REV`` (a git revision, e.g. ``HEAD``) each kind is also drawn, in the same
 rounds, by the ``report/figures.py`` and ``report/canvas.py`` of that revision (:func:`figures_at`), and
-the table gets their median and the speed-up (their median / this tree's).
+the table gets their median and the speed-up (their median / this tree's). The last row, ``features in a row``,
+is the feature figure of every item drawn one after another in a process forked for them (one a round and
+revision), per figure: as a workflow's worker draws them, where a figure's garbage weighs on the collections
+of the next ones, which the kinds drawn in turns in this one process do not show.
 """
 
 from __future__ import annotations
 
 import argparse
 import io
+import multiprocessing
 import statistics
 import subprocess
 import sys
@@ -38,12 +42,14 @@ from surffin.report.canvas import DPI
 
 #: Size of the reference's empty figure, inches (the feature figure's until it was made smaller).
 REFERENCE_SIZE = (19.0, 9.5)
+#: The row of :func:`features_in_a_row`.
+ROW = "features in a row"
 
 
-def make_stores(camp, folder: Path, specimen: str, scene: str) -> dict[str, Path]:
-    """Write the calibration, every item's chain, the training set and the scene's labels; returns the figures' stores.
+def make_stores(camp, folder: Path, specimen: str, scene: str) -> tuple[dict[str, Path], dict[str, dict[str, Path]]]:
+    """Write the calibration, every item's chain, the training set and the scene's labels.
 
-    ``features`` and ``registered`` are the specimen's.
+    Returns the figures' stores (``features`` and ``registered`` the specimen's) and each item's chain.
     """
     calibration = run_calibration(
         camp.path, folder / "calibration.zarr", params=parameters.calibration_parameters(CONFIG)
@@ -67,7 +73,7 @@ def make_stores(camp, folder: Path, specimen: str, scene: str) -> dict[str, Path
         stores={"features": chains[scene]["features"], "training": training},
         params=parameters.label_parameters(CONFIG),
     )
-    return {
+    stores = {
         "calibration": calibration,
         "training": training,
         "features": chains[specimen]["features"],
@@ -75,6 +81,7 @@ def make_stores(camp, folder: Path, specimen: str, scene: str) -> dict[str, Path
         "labels": labels,
         "ingest": chains[scene]["ingest"],
     }
+    return stores, chains
 
 
 def figures_at(revision: str) -> types.ModuleType:
@@ -99,6 +106,28 @@ def figures_at(revision: str) -> types.ModuleType:
         return module(f"figures@{revision}", "surffin/report/figures.py")
 
 
+def features_in_a_row(module: types.ModuleType, items: dict, out: Path) -> float:
+    """CPU seconds per figure of ``module`` writing the feature figure of each item in turn, in a forked process.
+
+    ``items``: name -> (the ``inputs`` of ``write_figures``, the roi).
+    """
+    context = multiprocessing.get_context("fork")
+    receive, send = context.Pipe(duplex=False)
+
+    def draw() -> None:
+        start = time.process_time()
+        for name, (inputs, roi) in items.items():
+            module.write_figures({"features": out / f"row-{name}.png"}, inputs, roi=roi)
+        send.send((time.process_time() - start) / len(items))
+
+    child = context.Process(target=draw)
+    child.start()
+    send.close()  # the child's end only: a child that fails ends the pipe
+    seconds = receive.recv()
+    child.join()
+    return seconds
+
+
 def reference() -> None:
     """Save an empty figure of :data:`REFERENCE_SIZE` as PNG, with matplotlib alone."""
     from matplotlib.figure import Figure
@@ -117,7 +146,11 @@ def main():
     with paper_campaign(args.campaign) as (camp, _), tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
         specimen, scene = next(iter(camp.specimens)), next(iter(camp.scenes))
-        stores = make_stores(camp, out, specimen, scene)
+        stores, chains = make_stores(camp, out, specimen, scene)
+        items = {
+            name: ({"features": chain["features"], "registered": chain["registered"]}, camp.items[name].roi)
+            for name, chain in chains.items()
+        }
         figures = {
             "features": {"features": stores["features"], "registered": stores["registered"]},
             "labels": {"labels": stores["labels"], "ingest": stores["ingest"]},
@@ -144,6 +177,10 @@ def main():
                 draw()
                 if round_:
                     times[kind].append(time.process_time() - start)
+            for suffix, module in modules.items():
+                seconds = features_in_a_row(module, items, out)
+                if round_:
+                    times.setdefault(ROW + suffix, []).append(seconds)
         print(
             f"figures of the paper campaign (features: {specimen}, labels: {scene}), "
             f"CPU seconds, {args.repeat} rounds; reference: an empty {REFERENCE_SIZE[0]}x{REFERENCE_SIZE[1]} in "
@@ -156,9 +193,9 @@ def main():
             f"{'figure':18s}{'median s':>10s}{'ratio':>8s}"
             + (f"{against + ' s':>14s}{'speed-up':>10s}" * bool(against))
         )
-        for kind in ("reference", *figures):
+        for kind in ("reference", *figures, ROW):
             row = f"{kind:18s}{medians[kind]:10.3f}{medians[kind] / base:8.2f}"
-            if against and kind in figures:
+            if against and kind != "reference":
                 row += f"{medians[kind + against]:14.3f}{medians[kind + against] / medians[kind]:10.2f}"
             print(row)
 
