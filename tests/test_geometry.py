@@ -344,6 +344,27 @@ def test_invalid_pixels_are_excluded():
     np.testing.assert_allclose(aoi[~invalid], truth[~invalid], rtol=0, atol=1e-6)
 
 
+@pytest.mark.parametrize("max_window", [7, 56])
+def test_what_an_invalid_pixel_holds_changes_no_bit(max_window):
+    """NaN, inf, z <= 0 or wild x, y at the invalid pixels: the same AOI and distance, to the bit, as NaN there."""
+    xyz, _, _ = plane([0.3, 0.1, -1.0], 0.8, 60, 70, noise=0.9e-3)
+    rng = np.random.default_rng(1)
+    invalid = rng.random(xyz.shape[:2]) < 0.15
+    clean = xyz.copy()
+    clean[invalid] = np.nan
+    xyz[invalid, 2] = rng.choice([np.nan, np.inf, -1.0, 0.0, -0.0], size=invalid.sum())
+    xyz[invalid, :2] = rng.choice([1e3, np.inf, -np.inf, np.nan, 1e150], size=(invalid.sum(), 2))
+    for got, expected in zip(
+        frame_angle_of_incidence(xyz, 7, max_window=max_window),
+        frame_angle_of_incidence(clean, 7, max_window=max_window),
+    ):
+        assert np.array_equal(got, expected, equal_nan=True)
+        assert np.isfinite(got[~invalid]).all()
+    assert np.array_equal(
+        plane_normals(xyz, 7, max_window=max_window), plane_normals(clean, 7, max_window=max_window), equal_nan=True
+    )
+
+
 def subset(keep):
     """A 3x3 frame of a plane with only the pixels ``keep`` (list of (row, col)) valid, and the plane's normal."""
     xyz, unit, _ = plane([0.3, 0.1, -1.0], 0.8, 3, 3)

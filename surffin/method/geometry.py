@@ -224,13 +224,12 @@ def _moments(points: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndar
     moments = np.empty((10, *valid.shape))
     moments[0] = valid
     coordinates = moments[1:4]
-    coordinates.fill(0.0)
-    np.divide(1.0, points[2], out=coordinates[2], where=valid)
-    for k in range(2):
-        np.multiply(points[k], coordinates[2], out=coordinates[k], where=valid)
-    centre = _centre(coordinates, valid)
-    for k in range(3):
-        np.subtract(coordinates[k], centre[k], out=coordinates[k], where=valid)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # invalid pixels: zeroed below
+        np.divide(1.0, points[2], out=coordinates[2])
+        np.multiply(points[:2], coordinates[2], out=coordinates[:2])
+        centre = _centre(coordinates, valid)
+        coordinates -= centre[:, None, None]
+    np.copyto(coordinates, 0.0, where=~valid)
     for k, (i, j) in enumerate(_PAIRS, start=4):
         np.multiply(coordinates[i], coordinates[j], out=moments[k])
     return moments, centre
