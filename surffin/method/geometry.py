@@ -455,7 +455,7 @@ def _normal_slopes(
     values = np.empty((14, cells.size))
     own_normal, own_centroid = values[:3], values[3:5]
     slopes, variance = values[5:11].reshape(3, 2, -1), values[11:]
-    own_normal[:], own_centroid[:] = normals[:, chosen], centroids[:, chosen]
+    own_normal[:], own_centroid[:] = normals.take(chosen, axis=1), centroids.take(chosen, axis=1)
     limit = _PLANARITY * np.maximum(residuals[chosen], 0.0)
     noises, own_noise = noise.reshape(-1), noise.reshape(-1)[chosen]
     scatter = np.zeros((3, cells.size))  # sum of d d^T: xx, xy, yy
@@ -467,8 +467,8 @@ def _normal_slopes(
             inside = (other_row >= 0) & (other_row < height) & (other_column >= 0) & (other_column < width)
             other = np.where(inside, other_row * width + other_column, 0)
             used = inside & (residuals[other] <= limit)
-            step = np.where(used, centroids[:, other] - own_centroid, 0.0)
-            change = np.where(used, normals[:, other] - own_normal, 0.0)
+            step = np.where(used, centroids.take(other, axis=1) - own_centroid, 0.0)
+            change = np.where(used, normals.take(other, axis=1) - own_normal, 0.0)
             products = np.stack((step[0] * step[0], step[0] * step[1], step[1] * step[1]))
             scatter += products
             # an unused neighbour adds nothing: beyond the border (read at cell 0) or empty, its noise is NaN
