@@ -25,11 +25,12 @@ arccos(|v . n|) at 0: a noisy normal can only make an AOI near 0 larger. It vani
 
 The camera: pinhole, fx 565, fy 579, principal point at the centre; 0.9 mm Gaussian depth noise along each ray.
 
-With ``--against``, only one table: per frame (the scene, its central 320x480 crop, a plain wall at 30 deg) and
-support, the median time per frame of the other version's ``frame_angle_of_incidence`` and of this one's, run in
-turn in the same process, and the ratio of the medians (wall clock, and CPU time: the machine is shared), and the
-largest |aoi difference| (deg) and whether the two leave the same pixels without an AOI; then, per frame, the same
-for ``mixed_pixels`` (window ``mixed``; the last column: whether the two flag the same pixels).
+With ``--against``, only one table: per frame (the scene, its central 320x480 crop, a plain wall at 30 deg, and
+the views of the ingest stores given with ``--stores``, e.g. ``processed/ingest/S1-01.zarr``) and support, the
+median time per frame of the other version's ``frame_angle_of_incidence`` and of this one's, run in turn in the same
+process, and the ratio of the medians (wall clock, and CPU time: the machine is shared), the largest |aoi
+difference| (deg), whether the two leave the same pixels without an AOI, and whether aoi and distance are equal to
+the bit; then, per frame, the same for ``mixed_pixels`` (window ``mixed``; the last columns: the same pixels flagged).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ import numpy as np
 import xarray as xr
 from scipy.spatial import cKDTree
 
+from surffin.io.store import open_store
 from surffin.method.geometry import frame_angle_of_incidence, mixed_pixels
 
 HEIGHT, WIDTH = 480, 640
@@ -138,7 +140,19 @@ def median_seconds(kernels, repeat: int) -> np.ndarray:
     return np.median(seconds, axis=-1)
 
 
-def compare(path: Path, repeat: int) -> None:
+def store_frames(paths: list[Path]) -> dict[str, np.ndarray]:
+    """Read the views (H, W, 3) of ingest stores' ``xyz``, axis in x, y, z order, by ``item vK``."""
+    frames = {}
+    for path in paths:
+        xyz = open_store(path, chunks=None)["xyz"].load()
+        if "axis" in xyz.coords:
+            xyz = xyz.sel(axis=["x", "y", "z"])
+        for view in range(xyz.sizes["view"]):
+            frames[f"{path.name.removesuffix('.zarr')} v{view}"] = xyz.isel(view=view).values
+    return frames
+
+
+def compare(path: Path, repeat: int, stores: list[Path]) -> None:
     """Print the table of this kernel against the ``frame_angle_of_incidence`` of another geometry module file."""
     spec = importlib.util.spec_from_file_location("reference_geometry", path)
     reference = importlib.util.module_from_spec(spec)
@@ -149,27 +163,32 @@ def compare(path: Path, repeat: int) -> None:
         "scene 480x640": xyz,
         "crop 320x480": xyz[80:400, 80:560],
         "wall 480x640": scene(0.5, 30.0, specimen=False, seed=1)[0],
+        **store_frames(stores),
     }
     print(f"this kernel against {path}: median of {repeat} runs each, in turn")
-    print(" | ".join(("frame", "window", "ref ms", "ms", "speed-up", "cpu speed-up", "max |d aoi| deg", "same NaN")))
+    header = ("frame", "window", "ref ms", "ms", "speed-up", "cpu speed-up", "max |d aoi| deg", "same NaN", "identical")
+    print(" | ".join(header))
 
-    def row(name, support, seconds, difference, same):
+    def row(name, support, seconds, difference, same, identical):
         (old_wall, new_wall), (old_cpu, new_cpu) = seconds
         cells = (f"{name:13s}", f"{support:>7s}", f"{old_wall * 1e3:6.1f}", f"{new_wall * 1e3:5.1f}")
         cells += (f"{old_wall / new_wall:8.2f}", f"{old_cpu / new_cpu:12.2f}", f"{difference:>15s}", f"{same!s:>8}")
-        print(" | ".join(cells))
+        print(" | ".join((*cells, f"{identical!s:>9}")))
 
     for name, frame in frames.items():
         for window, largest in ((15, 120), (21, 120), (15, 15)):
             runs = [lambda kernel=kernel: kernel(frame, window, max_window=largest) for kernel in kernels]
-            old, new = (run()[0] for run in runs)
+            (old, old_distance), (new, new_distance) = (run() for run in runs)
             difference = f"{np.nanmax(np.abs(np.rad2deg(old - new)), initial=0.0):.1e}"
             same = np.array_equal(np.isnan(old), np.isnan(new))
-            row(name, label(window, largest), median_seconds(runs, repeat), difference, same)
+            identical = np.array_equal(old, new, equal_nan=True)
+            identical &= np.array_equal(old_distance, new_distance, equal_nan=True)
+            row(name, label(window, largest), median_seconds(runs, repeat), difference, same, identical)
     for name, frame in frames.items():
         cloud = xr.DataArray(frame[None], dims=("view", "y", "x", "axis"))
         runs = [lambda kernel=kernel: kernel(cloud).values for kernel in (reference.mixed_pixels, mixed_pixels)]
-        row(name, "mixed", median_seconds(runs, repeat), "-", np.array_equal(*(run() for run in runs)))
+        same = np.array_equal(*(run() for run in runs))
+        row(name, "mixed", median_seconds(runs, repeat), "-", same, same)
 
 
 def main() -> None:
@@ -178,9 +197,10 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=15, help="timed runs per window (median reported)")
     parser.add_argument("--subset", type=int, default=2000, help="pixels of the cKDTree and PCA references")
     parser.add_argument("--against", type=Path, help="a geometry.py to time this kernel against (only that table)")
+    parser.add_argument("--stores", type=Path, nargs="*", default=[], help="ingest stores whose views --against adds")
     args = parser.parse_args()
     if args.against is not None:
-        compare(args.against, args.repeat)
+        compare(args.against, args.repeat, args.stores)
         return
     xyz, truth = scene()
     pixels = HEIGHT * WIDTH
