@@ -346,7 +346,10 @@ def test_invalid_pixels_are_excluded():
 
 @pytest.mark.parametrize("max_window", [7, 56])
 def test_what_an_invalid_pixel_holds_changes_no_bit(max_window):
-    """NaN, inf, z <= 0 or wild x, y at the invalid pixels: the same AOI and distance, to the bit, as NaN there."""
+    """NaN, inf, z <= 0 or wild x, y at the invalid pixels: the AOI, distance, normals and mixed pixels of NaN there.
+
+    To the bit: the kernels compute over every pixel and clear the invalid ones after.
+    """
     xyz, _, _ = plane([0.3, 0.1, -1.0], 0.8, 60, 70, noise=0.9e-3)
     rng = np.random.default_rng(1)
     invalid = rng.random(xyz.shape[:2]) < 0.15
@@ -363,6 +366,8 @@ def test_what_an_invalid_pixel_holds_changes_no_bit(max_window):
     assert np.array_equal(
         plane_normals(xyz, 7, max_window=max_window), plane_normals(clean, 7, max_window=max_window), equal_nan=True
     )
+    masks = [mixed_pixels(xr.DataArray(cloud[None], dims=("view", "y", "x", "axis"))).values for cloud in (xyz, clean)]
+    assert np.array_equal(*masks)
 
 
 def subset(keep):

@@ -98,12 +98,12 @@ def _check_jump(jump) -> float:
 
 def _log_depth(points: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Log-depth, NaN at invalid pixels, and ray coordinates x/z, y/z, zero there, (3, H * W) of one frame, float32."""
-    terms = np.zeros((3, valid.size), dtype=np.float32)
-    terms[0] = np.nan
+    terms = np.empty((3, valid.size), dtype=np.float32)
     z = points[2].reshape(-1)
-    np.log(z, out=terms[0], where=valid.reshape(-1))
-    for k in range(2):
-        np.divide(points[k].reshape(-1), z, out=terms[k + 1], where=valid.reshape(-1))
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # invalid pixels: set below
+        np.log(z, out=terms[0])
+        np.divide(points[:2].reshape(2, -1), z, out=terms[1:])
+    np.copyto(terms, np.array([[np.nan], [0.0], [0.0]], dtype=np.float32), where=~valid.reshape(-1))
     return terms
 
 
