@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import pickle
 import subprocess
 import sys
 import tempfile
@@ -39,7 +38,7 @@ from _paper import paper_campaign
 from bench_chunks import CONFIG, quiet_logs, run_chain
 
 from surffin.io.campaign import read_truth
-from surffin.io.store import open_store
+from surffin.io.store import open_store, write_store
 from surffin.method.classify import score, training_set
 from surffin.method.stages import features_stage, labels_stage, reflectance_stage
 from surffin.pipeline import parameters
@@ -75,7 +74,7 @@ def time_stages(processed: Path, items: list[str], outputs: Path | None) -> dict
 
     The inputs are read into memory first, as a job reads an item that fits in one chunk; the stage
     runs once untimed (imports, caches), then once timed. With ``outputs``, the stages' outputs are
-    pickled there (by stage and item).
+    written there as stores (``<stage>/<item>.zarr``).
     """
     seconds, results = {}, {}
     for stage, function in STAGES.items():
@@ -86,8 +85,8 @@ def time_stages(processed: Path, items: list[str], outputs: Path | None) -> dict
             start = time.process_time()
             function(**inputs, **written.attrs["surffin_parameters"])
             seconds.setdefault(stage, {})[item] = time.process_time() - start
-    if outputs is not None:
-        outputs.write_bytes(pickle.dumps(results))
+    for (stage, item), ds in results.items() if outputs is not None else ():
+        write_store(ds, outputs / stage / f"{item}.zarr")
     return seconds
 
 
@@ -105,7 +104,14 @@ def compare_trees(processed: Path, baseline: Path, items: list[str], repeat: int
                 runs = json.loads(subprocess.run(command, env=env, check=True, capture_output=True, text=True).stdout)
                 for stage, by_item in runs.items():
                     seconds[label][stage].append(sum(by_item.values()) / len(by_item))
-        results = {label: pickle.loads(Path(tmp, label).read_bytes()) for label in trees}
+        results = {
+            label: {
+                (stage, item): open_store(Path(tmp, label, stage, f"{item}.zarr")).load()
+                for stage in STAGES
+                for item in items
+            }
+            for label in trees
+        }
     print(f"{len(items)} items of {processed}, CPU s per item, medians of {repeat} alternating rounds")
     print(f"{'stage':14s}{'old':>9s}{'new':>9s}{'new/old':>9s}  outputs")
     for stage in STAGES:
