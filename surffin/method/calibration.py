@@ -1541,7 +1541,7 @@ def calibrate(
                 f"several distances and angles, at least {min_obs} times"
             ) from exc
 
-    def residuals(coef: np.ndarray, penalty: float | None = None) -> xr.Dataset:
+    def residuals(pooled: tuple, coef: np.ndarray, penalty: float | None = None) -> xr.Dataset:
         pixels, views, (intensity, distance, angle) = pooled
         f = instrument_function(coef.reshape(5, -1).take(pixels, axis=1), distance, angle)
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -1574,7 +1574,7 @@ def calibrate(
         if residual_correction:
             # the random observations are all kept by now: pooled once for both fits of the correction
             pooled = samples.pool()
-            first = residuals(plain)["correction"]
+            first = residuals(pooled, plain)["correction"]
             refit = WallStatistics(stats.shape)
         for path in again:
             view = spilled.get(str(path))
@@ -1589,7 +1589,7 @@ def calibrate(
         ds = fit_calibration(refit, min_obs=min_obs, angular_smoothing=angular_smoothing, start=plain)
         diagnostics = checked(ds)
         # the smoothness cross-validated on the ratios to the plain fit
-        ds = ds.merge(residuals(ds["coef"].values, first.attrs["penalty"]))
+        ds = ds.merge(residuals(pooled, ds["coef"].values, first.attrs["penalty"]))
         ds["correction"].attrs.update({key: first.attrs[key] for key in ("cv_penalties", "cv_scores")})
         correction = ds["correction"]
         log.info(
