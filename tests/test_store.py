@@ -11,6 +11,7 @@ import surffin
 from surffin.errors import StoreError
 from surffin.io.store import (
     JSON_ATTRS,
+    StoreCache,
     clean_leftovers,
     decode_attrs,
     encode_attrs,
@@ -47,6 +48,46 @@ def test_round_trip_with_plain_xarray(tmp_path):
     assert back["a"].chunks == ((3,), (4, 3), (5, 4))
     meta = json.loads((path / "zarr.json").read_text())
     assert meta["zarr_format"] == 3 and "consolidated_metadata" in meta
+
+
+def test_store_cache_keeps_a_store_until_it_is_written_anew(tmp_path):
+    path = write_store(nested_attrs_store(), tmp_path / "s.zarr")
+    other = write_store(cube(seed=1), tmp_path / "o.zarr")
+    cache = StoreCache(max_bytes=10**6)
+    assert cache.get(path) is None
+    loaded = cache.keep(path)
+    xr.testing.assert_identical(loaded, open_store(path).compute())
+    kept = cache.get(tmp_path / "." / "s.zarr")  # the same store by another spelling of its path
+    xr.testing.assert_identical(kept, loaded)
+    assert kept["a"].data is loaded["a"].data  # not read again
+    with pytest.raises(ValueError, match="read-only"):
+        kept["a"].data[0, 0, 0] = 2.0
+    # a caller's attributes, nested ones included, are its own
+    kept.attrs["camera"]["width"] = 0
+    kept["a"].attrs["unclassified"]["board"] = 0
+    assert cache.get(path).attrs["camera"]["width"] == 9
+    assert cache.get(path)["a"].attrs["unclassified"] == {"board": 3}
+    # a store written anew at the path is read anew
+    write_store(cube(seed=2), path)
+    assert cache.get(path) is None
+    xr.testing.assert_identical(cache.keep(path), cube(seed=2))
+    assert cache.get(other) is None and cache.keep(other) is not None
+    xr.testing.assert_identical(cache.get(other), cube(seed=1))
+
+
+def test_store_cache_lets_the_least_recently_used_store_go_beyond_its_bytes(tmp_path):
+    paths = [write_store(cube(seed=seed), tmp_path / f"{seed}.zarr") for seed in range(3)]
+    size = open_store(paths[0]).compute().nbytes
+    cache = StoreCache(max_bytes=2 * size)
+    cache.keep(paths[0])
+    cache.keep(paths[1])
+    assert cache.get(paths[0]) is not None  # now the most recently used
+    cache.keep(paths[2])
+    assert cache.get(paths[1]) is None
+    assert cache.get(paths[0]) is not None and cache.get(paths[2]) is not None
+    small = StoreCache(max_bytes=size - 1)
+    xr.testing.assert_identical(small.keep(paths[0]), cube(seed=0))
+    assert small.get(paths[0]) is None
 
 
 def nested_attrs_store():

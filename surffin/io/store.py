@@ -14,12 +14,15 @@ works for every store and surffin still reads the values it wrote.
 
 from __future__ import annotations
 
+import copy
 import json
 import numbers
 import os
 import shutil
+import threading
 import uuid
 import warnings
+from collections import OrderedDict
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -36,6 +39,7 @@ __all__ = [
     "JSON_ATTRS",
     "write_store",
     "open_store",
+    "StoreCache",
     "provenance",
     "clean_leftovers",
     "encode_attrs",
@@ -305,3 +309,73 @@ def open_store(path: str | os.PathLike, *, stage: str | None = None, chunks="aut
     if stage is not None and made_by != stage:
         raise StoreError(f"{path}: expected a store made by stage {stage!r}, found one made by {made_by!r}")
     return ds
+
+
+def _identity(path: Path) -> tuple | None:
+    """Return what changes when a store is written anew: its ``zarr.json``'s device, inode, size, time (or None)."""
+    try:
+        stat = (path / "zarr.json").stat()
+    except OSError:
+        return None
+    return stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns
+
+
+def _copy(ds: xr.Dataset) -> xr.Dataset:
+    """Return a new Dataset on the same arrays, with its own attributes (nested values included)."""
+    copied = ds.copy(deep=False)
+    copied.attrs = copy.deepcopy(ds.attrs)
+    for variable in copied.variables.values():
+        variable.attrs = copy.deepcopy(variable.attrs)
+    return copied
+
+
+class StoreCache:
+    """Stores loaded into memory, kept while their files are unchanged, so that a process reads each once.
+
+    A store is known by its path and its ``zarr.json``'s identity (device, inode, size, modification
+    time): :func:`write_store` renames a new folder onto the path, so a store written anew is read
+    anew. The kept arrays are read-only: a caller that would change an array in place gets an error,
+    not another caller's data changed. The least recently used stores leave first once the kept
+    arrays exceed ``max_bytes``; a store larger than that is returned and not kept.
+
+    Parameters
+    ----------
+    max_bytes : int
+        The most bytes of arrays kept.
+    """
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
+        self._kept: OrderedDict[tuple, xr.Dataset] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, path: str | os.PathLike) -> xr.Dataset | None:
+        """Return the store at ``path`` as :meth:`keep` loaded it, if kept and unchanged since; else None."""
+        key = (Path(path).resolve(), _identity(Path(path)))
+        with self._lock:
+            ds = self._kept.get(key)
+            if ds is None:
+                return None
+            self._kept.move_to_end(key)
+        return _copy(ds)
+
+    def keep(self, path: str | os.PathLike, ds: xr.Dataset | None = None) -> xr.Dataset:
+        """Load the store at ``path`` (``ds``: as :func:`open_store` opened it) and keep it.
+
+        Returns
+        -------
+        Dataset
+            The loaded store; kept only if its files did not change while it was loaded.
+        """
+        path = Path(path).resolve()
+        identity = _identity(path)
+        ds = (open_store(path, chunks=None) if ds is None else ds).load()
+        for variable in ds.variables.values():
+            if isinstance(variable.data, np.ndarray):
+                variable.data.flags.writeable = False
+        if identity is not None and identity == _identity(path) and ds.nbytes <= self.max_bytes:
+            with self._lock:
+                self._kept[(path, identity)] = ds
+                while sum(kept.nbytes for kept in self._kept.values()) > self.max_bytes:
+                    self._kept.popitem(last=False)
+        return _copy(ds)
