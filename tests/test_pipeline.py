@@ -11,6 +11,7 @@ import subprocess
 import sys
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
@@ -347,7 +348,10 @@ def test_in_worker_runs_the_call_in_another_process_with_plain_arguments():
     pid, argument = in_worker(worker_report, Name("a"), {"b": (Name("c"),)})
     assert pid != os.getpid()
     assert argument == ("str", {"b": ["c"]})
-    assert in_worker(worker_report, "x")[0] == pid  # the worker is kept for the next job
+    # the workers are kept for the next jobs: no new process per job
+    assert len({pid, *(in_worker(worker_report, "x")[0] for _ in range(2 * (os.cpu_count() or 1)))}) <= (
+        os.cpu_count() or 1
+    )
 
 
 def test_in_worker_raises_the_call_s_error_and_survives_a_crash(tmp_path):
@@ -360,6 +364,24 @@ def test_in_worker_raises_the_call_s_error_and_survives_a_crash(tmp_path):
 
 def worker_report(name, mapping=None):
     return os.getpid(), (type(name).__name__, name if mapping is None else mapping)
+
+
+def pid_after(seconds):
+    time.sleep(seconds)
+    return os.getpid()
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one worker per core: two workers need two cores")
+def test_in_worker_sends_a_key_s_job_to_the_worker_that_ran_its_last_job():
+    # two jobs at once take two workers; each key's next job goes back to its key's worker
+    with ThreadPoolExecutor(2) as threads:
+        pids = dict(zip("ab", threads.map(lambda key: in_worker(pid_after, 0.5, affinity=key), "ab")))
+    assert pids["a"] != pids["b"]
+    assert in_worker(os.getpid, affinity="b") == pids["b"]
+    assert in_worker(os.getpid, affinity="a") == pids["a"]
+    assert in_worker(os.getpid) == pids["b"]  # no key: the worker used longest ago, which keeps its key
+    assert in_worker(os.getpid, affinity="b") == pids["b"]
+    assert in_worker(os.getpid, affinity="c") == pids["a"]
 
 
 def test_start_workers_starts_the_worker_the_next_job_runs_in():

@@ -202,21 +202,77 @@ def dask_scheduler(scheduler: str | None, threads: int = 1) -> Iterator[None]:
 #: Modules the worker processes import once, when their server starts (scipy.optimize: the camera model's
 #: fit imports it when called, so that snakemake's own process, which only names the stages, does not).
 _PRELOAD = ["surffin.pipeline.run", "surffin.pipeline.analyses", "scipy.optimize"]
-_POOL: list[ProcessPoolExecutor] = []
-_POOL_LOCK = threading.Lock()
 
 
-def _pool(renew: bool = False) -> ProcessPoolExecutor:
-    """Return the process's pool of workers, made on first use (or anew when ``renew``)."""
-    with _POOL_LOCK:
-        if renew or not _POOL:
-            # forkserver: the workers are forked from a clean single-threaded server that has
-            # imported surffin, not from this multi-threaded process; they start as needed, at
-            # most one per core.
-            context = multiprocessing.get_context("forkserver")
-            context.set_forkserver_preload(_PRELOAD)
-            _POOL[:] = [ProcessPoolExecutor(max_workers=os.cpu_count(), mp_context=context, initializer=_one_thread)]
-        return _POOL[0]
+class _Workers:
+    """The worker processes of :func:`in_worker`: one pool of one process each, started as jobs need them.
+
+    A job goes to an idle worker that last ran a job of the same ``affinity`` key, else to the idle
+    started worker used longest ago, else to a new one: an item's stages, run one after another,
+    tend to share a process, which keeps the stores it loaded for the next stage
+    (:class:`surffin.io.store.StoreCache`).
+    """
+
+    def __init__(self, size: int) -> None:
+        self._pools: list[ProcessPoolExecutor | None] = [None] * size
+        self._keys: list[Any] = [None] * size
+        self._used = [0] * size
+        self._busy = [False] * size
+        self._jobs = 0
+        self._free = threading.Condition()
+
+    def _take(self, key: Any) -> int:
+        with self._free:
+            self._free.wait_for(lambda: not all(self._busy))
+            idle = [i for i, busy in enumerate(self._busy) if not busy]
+            started = [i for i in idle if self._pools[i] is not None]
+            same = [i for i in started if key is not None and self._keys[i] == key]
+            index = (same or sorted(started, key=self._used.__getitem__) or idle)[0]
+            self._busy[index] = True
+            self._jobs += 1
+            self._used[index] = self._jobs
+            self._keys[index] = self._keys[index] if key is None else key
+            if self._pools[index] is None:
+                self._pools[index] = _new_pool()
+            return index
+
+    def _give_back(self, index: int) -> None:
+        with self._free:
+            self._busy[index] = False
+            self._free.notify()
+
+    def run(self, key: Any, function: Callable, args: tuple, kwargs: dict) -> Any:
+        """Run ``function(*args, **kwargs)`` in a worker chosen for ``key``; a crashed worker is replaced."""
+        index = self._take(key)
+        try:
+            try:
+                future = self._pools[index].submit(function, *args, **kwargs)
+            except BrokenProcessPool:
+                self._pools[index] = _new_pool()
+                future = self._pools[index].submit(function, *args, **kwargs)
+            return future.result()
+        finally:
+            self._give_back(index)
+
+
+def _new_pool() -> ProcessPoolExecutor:
+    # forkserver: the workers are forked from a clean single-threaded server that has
+    # imported surffin, not from this multi-threaded process.
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(_PRELOAD)
+    return ProcessPoolExecutor(max_workers=1, mp_context=context, initializer=_one_thread)
+
+
+_WORKERS: list[_Workers] = []
+_WORKERS_LOCK = threading.Lock()
+
+
+def _workers() -> _Workers:
+    """Return the process's workers, at most one per core, made on first use."""
+    with _WORKERS_LOCK:
+        if not _WORKERS:
+            _WORKERS.append(_Workers(os.cpu_count() or 1))
+        return _WORKERS[0]
 
 
 def start_workers() -> threading.Thread:
@@ -229,7 +285,7 @@ def start_workers() -> threading.Thread:
 
     def start() -> None:
         with contextlib.suppress(Exception):
-            _pool().submit(os.getpid)
+            _workers().run(None, os.getpid, (), {})
 
     thread = threading.Thread(target=start, name="surffin-workers", daemon=True)
     thread.start()
@@ -258,7 +314,7 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def in_worker(function: Callable, /, *args: Any, **kwargs: Any) -> Any:
+def in_worker(function: Callable, /, *args: Any, affinity: str | None = None, **kwargs: Any) -> Any:
     """Run ``function(*args, **kwargs)`` in a worker process and return what it returns.
 
     The workflow's jobs run in snakemake's threads, which share one interpreter
@@ -274,10 +330,9 @@ def in_worker(function: Callable, /, *args: Any, **kwargs: Any) -> Any:
         A module-level function (it is sent to the worker by name).
     *args, **kwargs
         Its arguments: plain values, paths, mappings and sequences of them.
+    affinity : str, optional
+        A key (an item's name) of jobs that read each other's stores: they go to the worker
+        that ran the last of them when it is idle (:class:`_Workers`).
     """
     args, kwargs = _plain(args), _plain(kwargs)
-    try:
-        future = _pool().submit(function, *args, **kwargs)
-    except BrokenProcessPool:
-        future = _pool(renew=True).submit(function, *args, **kwargs)
-    return future.result()
+    return _workers().run(affinity, function, tuple(args), kwargs)

@@ -20,7 +20,7 @@ import numpy as np
 
 from surffin.grid import Roi
 from surffin.io.files import write_json
-from surffin.io.store import DEFAULT_CHUNKS, open_store, provenance, write_store
+from surffin.io.store import DEFAULT_CHUNKS, StoreCache, open_store, provenance, write_store
 from surffin.method.stages import roughness_stage
 from surffin.pipeline.jobs import dask_scheduler, logging_to
 from surffin.pipeline.table import STAGES, stage_of
@@ -37,6 +37,11 @@ __all__ = [
 ]
 
 log = logging.getLogger("surffin")
+
+#: The input stores a process's stage jobs loaded, kept for its next jobs: a worker running an item's
+#: stages one after another (:func:`surffin.pipeline.jobs.in_worker`'s ``affinity``) reads each of the
+#: item's stores once, and the calibration once for all items.
+_LOADED = StoreCache(max_bytes=512 * 2**20)
 
 #: Percentiles of each specimen's pixel n whose span over the specimens the roughness relation supports.
 SUPPORT_PERCENTILES = (2, 98)
@@ -92,13 +97,17 @@ def _open_inputs(stores: Mapping[str, str | os.PathLike], chunks: Mapping[str, i
     An item no larger than one chunk is one task per array, which dask neither parallelises nor
     bounds in memory, and its graphs cost about a tenth of the chain's CPU (docs/performance.md);
     a larger one keeps its chunks, so that the job's memory follows the chunks, not the item. The
-    calibration covers the whole sensor, not the item's crop, and does not decide.
+    calibration covers the whole sensor, not the item's crop, and does not decide. Stores loaded
+    are kept for the process's next jobs (:data:`_LOADED`).
     """
     limits = {**DEFAULT_CHUNKS, **(chunks or {})}
-    opened = {name: open_store(path, chunks=None) for name, path in stores.items()}
+    kept = {name: _LOADED.get(path) for name, path in stores.items()}
+    opened = {
+        name: open_store(path, chunks=None) if kept[name] is None else kept[name] for name, path in stores.items()
+    }
     items = [ds for name, ds in opened.items() if name != "calibration"]
     if all(ds.sizes.get(dim, 1) <= limits[dim] for ds in items for dim in ("y", "x")):
-        return {name: ds.load() for name, ds in opened.items()}
+        return {name: _LOADED.keep(stores[name], ds) if kept[name] is None else ds for name, ds in opened.items()}
     return {name: open_store(path) for name, path in stores.items()}
 
 

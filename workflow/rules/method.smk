@@ -2,7 +2,8 @@
 # surffin.pipeline.table, each calling one surffin.pipeline.run function. The jobs
 # run in snakemake's own threads (force-use-threads in profiles/default), so a
 # job costs no process start-up and a parameter change reruns only the stages
-# it touches.
+# it touches. An item's jobs share a worker process when it is idle (affinity),
+# which keeps the stores they load.
 
 
 rule ingest:
@@ -22,7 +23,15 @@ rule ingest:
         chunks=config["chunks"],
         code=STAGES["ingest"].version,
     run:
-        in_worker(run_ingest, params.campaign, wildcards.item, output[0], chunks=params.chunks, log_path=log[0])
+        in_worker(
+            run_ingest,
+            params.campaign,
+            wildcards.item,
+            output[0],
+            chunks=params.chunks,
+            log_path=log[0],
+            affinity=wildcards.item,
+        )
 
 
 rule aoi:
@@ -50,6 +59,7 @@ rule aoi:
             **params.job,
             threads=threads,
             log_path=log[0],
+            affinity=wildcards.item,
         )
 
 
@@ -76,6 +86,7 @@ rule reflectance:
             **params.job,
             threads=threads,
             log_path=log[0],
+            affinity=wildcards.item,
         )
 
 
@@ -104,6 +115,7 @@ rule registration:
             **params.job,
             threads=threads,
             log_path=log[0],
+            affinity=wildcards.item,
         )
 
 
@@ -132,4 +144,5 @@ rule features:
             **params.job,
             threads=threads,
             log_path=log[0],
+            affinity=wildcards.item,
         )
