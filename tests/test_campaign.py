@@ -250,6 +250,50 @@ def test_check_views_can_be_skipped(campaign):
         read_campaign(root)
 
 
+def test_items_builds_only_the_named_items(campaign):
+    root, doc = campaign
+    write_yaml(root, doc)
+    whole = read_campaign(root)
+    for name in whole.items:
+        camp = read_campaign(root, items=[name])
+        assert list(camp.items) == [name] and camp.item(name) == whole.item(name)
+        assert (camp.name, camp.camera, camp.crop, camp.calibration) == (
+            whole.name,
+            whole.camera,
+            whole.crop,
+            whole.calibration,
+        )
+
+
+def test_items_leaves_the_other_items_files_unread(campaign):
+    root, doc = campaign
+    write_yaml(root, doc)
+    (root / "specimens/S2/v0.raw").write_bytes(b"broken")
+    (root / TRUTH).write_bytes(b"broken")
+    assert read_campaign(root, items=["S1"]).specimens["S1"].view_stems == ("v0", "v1")
+    with pytest.raises(CampaignError, match=r"specimens\.S2\.views: .*v0\.raw: 6 bytes"):
+        read_campaign(root, items=["S2"])
+    with pytest.raises(CampaignError, match=r"scenes\.T1\.truth: .*unreadable truth file"):
+        read_campaign(root, items=["T1"])
+    (root / TRUTH).unlink()
+    with pytest.raises(CampaignError, match=r"scenes\.T1\.truth: got 'scenes/T1/truth.npz'; expected an existing"):
+        read_campaign(root, items=["S1"])
+
+
+def test_unknown_item_names_the_campaign_s_items(campaign):
+    root, doc = campaign
+    write_yaml(root, doc)
+    message = "campaign.yaml: no item named 'S3'; the campaign has: S1, S2, T1$"
+    with pytest.raises(CampaignError, match=message):
+        read_campaign(root, items=["S1", "S3"])
+    with pytest.raises(CampaignError, match=message):
+        read_campaign(root).item("S3")
+    with pytest.raises(CampaignError, match=message):
+        ingest_item(read_campaign(root), "S3")
+    with pytest.raises(CampaignError, match="no item named 'S2'; the campaign has: S1$"):
+        read_campaign(root, items=["S1"]).item("S2")
+
+
 def test_campaign_directory_without_yaml(tmp_path):
     with pytest.raises(CampaignError, match="no such file; expected a campaign directory holding campaign.yaml"):
         read_campaign(tmp_path)

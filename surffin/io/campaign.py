@@ -23,7 +23,7 @@ import math
 import re
 import reprlib
 import zipfile
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Collection, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import partial
@@ -267,9 +267,27 @@ class Campaign:
         calibration = () if self.calibration is None else (*self.calibration.wall, *self.calibration.reference.views)
         return [*(view for item in self.items.values() for view in item.views), *calibration]
 
+    def item(self, name: str) -> Item:
+        """Return the specimen or scene ``name``.
+
+        Raises
+        ------
+        CampaignError
+            The campaign has no item ``name``; the message names those it has.
+        """
+        items = self.items
+        if name not in items:
+            raise _no_item(self.path, name, items)
+        return items[name]
+
     def read_view(self, path: str | Path) -> View:
         """Read one view file with this campaign's camera (size, units, ABCY16 encoding)."""
         return read_view(path, **self.camera.view_kwargs)
+
+
+def _no_item(yaml_path: Path, name: str, names: Collection[str]) -> CampaignError:
+    """Return the error of asking a campaign of the items ``names`` for the item ``name``."""
+    return CampaignError(f"{yaml_path}: no item named {name!r}; the campaign has: {', '.join(names) or 'none'}")
 
 
 def read_campaign(
@@ -277,6 +295,7 @@ def read_campaign(
     *,
     require_calibration: bool = True,
     check_views: bool = True,
+    items: Collection[str] | None = None,
 ) -> Campaign:
     """Read and validate a campaign.
 
@@ -291,6 +310,11 @@ def read_campaign(
         Check the structure of every view file and its sidecars (cheap:
         headers and sizes), and that the settings of ``camera.match_settings``
         agree over the views.
+    items : collection of str, optional
+        Build only these specimens and scenes, as a job that reads one item
+        needs: the other items' folders, view files and truth files are not
+        read (``campaign.yaml`` is still checked whole), and ``check_views``
+        covers the calibration set's views and these items' only.
 
     Returns
     -------
@@ -301,12 +325,14 @@ def read_campaign(
     CampaignError
         Anything in the campaign breaks the contract; the message names
         ``campaign.yaml``, the key (e.g. ``specimens.S1.roi.y``), the bad value
-        and what is expected.
+        and what is expected; or a name of ``items`` is no item of the
+        campaign (the message names those it has).
     """
     yaml_path = _campaign_file(Path(path))
     try:
         entries = _CAMPAIGN(_load_yaml(yaml_path), "")
-        return _Builder.for_campaign(yaml_path, entries, check_views).campaign(entries, require_calibration)
+        builder = _Builder.for_campaign(yaml_path, entries, check_views, items)
+        return builder.campaign(entries, require_calibration, items)
     except _Invalid as exc:
         raise CampaignError(f"{yaml_path}: {exc.key}: {exc.message}") from exc.__cause__
 
@@ -802,25 +828,33 @@ class _Builder:
     check_views: bool
 
     @classmethod
-    def for_campaign(cls, yaml_path: Path, entries: dict, check_views: bool) -> _Builder:
+    def for_campaign(
+        cls, yaml_path: Path, entries: dict, check_views: bool, items: Collection[str] | None = None
+    ) -> _Builder:
+        """Check the crop and the truth files (of ``items``' scenes when given: the others are found, not read)."""
         camera = entries["camera"]
         crop = entries["crop"] or camera.sensor
         for axis, size, what in (("y", camera.height, "rows"), ("x", camera.width, "columns")):
             bounds = getattr(crop, axis)
             if bounds[1] > size:
                 _fail(f"crop.{axis}", list(bounds), f"a range within the sensor's {size} {what} (not clipped)")
-        truths = {
-            name: _checked_truth(yaml_path.parent, scene["truth"], f"scenes.{name}.truth", camera)
-            for name, scene in entries["scenes"].items()
-            if scene["truth"] is not None
-        }
+        truths = {}
+        for name, scene in entries["scenes"].items():
+            if scene["truth"] is None:
+                continue
+            key = f"scenes.{name}.truth"
+            if items is None or name in items:
+                truths[name] = _checked_truth(yaml_path.parent, scene["truth"], key, camera)
+            else:  # still never a view of the items built
+                truths[name] = _inside(yaml_path.parent, scene["truth"], key, folder=False)
         return cls(yaml_path, camera, crop, truths, check_views)
 
     @property
     def root(self) -> Path:
         return self.yaml_path.parent
 
-    def campaign(self, entries: dict, require_calibration: bool) -> Campaign:
+    def campaign(self, entries: dict, require_calibration: bool, items: Collection[str] | None = None) -> Campaign:
+        """Build the campaign, of the items ``items`` only when given."""
         specimens, scenes = entries["specimens"], entries["scenes"]
         if not specimens and not scenes:
             raise _Invalid("specimens", "no specimens and no scenes; expected at least one item")
@@ -834,6 +868,12 @@ class _Builder:
             raise _Invalid(
                 "calibration", "missing; expected a calibration section (wall, reference) or a calibration store"
             )
+        if items is not None:
+            for name in items:
+                if name not in specimens and name not in scenes:
+                    raise _no_item(self.yaml_path, name, [*specimens, *scenes])
+            specimens = {name: entry for name, entry in specimens.items() if name in items}
+            scenes = {name: entry for name, entry in scenes.items() if name in items}
         campaign = Campaign(
             root=self.root,
             path=self.yaml_path,

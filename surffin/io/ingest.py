@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from surffin.errors import CampaignError
 from surffin.grid import Roi
 from surffin.io.campaign import Campaign
 from surffin.io.store import provenance
@@ -112,10 +111,7 @@ def ingest_item(campaign: Campaign, name: str) -> xr.Dataset:
         the ``<stem>.meta.json`` sidecars), and provenance (surffin version,
         source files with sizes and checksums).
     """
-    if name not in campaign.items:
-        known = ", ".join(campaign.items) or "none"
-        raise CampaignError(f"{campaign.path}: no item named {name!r}; the campaign has: {known}")
-    item = campaign.items[name]
+    item = campaign.item(name)
     views = [campaign.read_view(path) for path in item.views]
     ds = build_cube(views, campaign.crop)
     inputs = {str(path.relative_to(campaign.root)): describe_file(path) for path in item.views}

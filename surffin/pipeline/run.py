@@ -85,7 +85,7 @@ def run_ingest(
     from surffin.io.ingest import ingest_item
 
     with logging_to(log_path):
-        camp = read_campaign(campaign, require_calibration=False, check_views=False)
+        camp = read_campaign(campaign, require_calibration=False, check_views=False, items=[item])
         ds = ingest_item(camp, item)
         log.info("ingest %s: %d views, cube %s", item, ds.sizes["view"], dict(ds.sizes))
         return _write(ds, store, chunks, "ingest")
