@@ -559,6 +559,11 @@ def all_invalid(xyz, intensity):
     return np.zeros_like(xyz), intensity
 
 
+def rows_invalid(xyz, intensity, rows):
+    xyz[rows] = 0.0
+    return xyz, intensity
+
+
 def pose_in_npz_and_sidecar(folder, xyz, intensity):
     path = folder / "v.npz"
     write_view(path, xyz, intensity, pose=rigid_pose())
@@ -699,7 +704,18 @@ BROKEN = {
         "NaN, infinite or negative on 3 of 44 valid pixels",
         False,
     ),
+    "intensity-infinite": (
+        with_arrays(intensity_set(np.inf, [(2, 2)])),
+        r"NaN, infinite or negative on 1 of 44 valid pixels \(first at row 2, column 2: inf\)",
+        False,
+    ),
+    "intensity-negative-middle-row-invalid": (
+        with_arrays(lambda xyz, intensity: rows_invalid(xyz, intensity_set(-2.0, [(4, 4)])(xyz, intensity)[1], [3])),
+        r"NaN, infinite or negative on 1 of 36 valid pixels \(first at row 4, column 4: -2\.0\)",
+        False,
+    ),
     "no-valid-pixel": (with_arrays(all_invalid, "v.raw"), "no valid pixel", False),
+    "no-valid-pixel-npz": (with_arrays(all_invalid), "no valid pixel", False),
     "not-a-view-suffix": (file_bytes("v.txt", b""), "not a view form", True),
     "missing-file": (lambda folder, xyz, intensity: (folder / "v.npz",) * 2, "unreadable", True),
 }
@@ -725,6 +741,21 @@ def test_broken_view_file(tmp_path, synthetic_view, sensor, make, match, structu
             check_view_pixels(path, **sensor)
         assert str(named) in str(raised.value)
     assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize(
+    "rows", [[3], [1, 2, 3, 4, 5], [0, 1, 2, 3, 4]], ids=["middle-row-invalid", "first-row-valid", "last-row-valid"]
+)
+@pytest.mark.parametrize("name", ["v.npz", "v.raw"])
+def test_pixel_rules_hold_off_the_middle_row_and_on_invalid_pixels(tmp_path, synthetic_view, sensor, rows, name):
+    xyz, intensity, valid = synthetic_view
+    xyz, intensity = rows_invalid(xyz.copy(), intensity.copy(), rows)
+    valid[rows] = False
+    intensity[~valid] = -5.0 if name == "v.raw" else np.nan  # a raw file's intensity is uint16
+    path = tmp_path / name
+    write_view(path, xyz, intensity)
+    check_view_pixels(path, **sensor)
+    np.testing.assert_array_equal(read_view(path, **sensor).valid, valid)
 
 
 # --- writing ------------------------------------------------------------------------------------
