@@ -221,6 +221,23 @@ def test_ingest_keeps_saturated_points_for_geometry_only(campaign, synthetic_vie
     np.testing.assert_array_equal(back["saturated"], ds["saturated"])
 
 
+def test_ingest_cube_holds_the_views_cropped_and_rounded_to_float32(campaign):
+    root, doc = campaign
+    doc["camera"]["units"] = "mm"  # metres from millimetres: float64 values that float32 rounds
+    write_yaml(root, doc)
+    camp = read_campaign(root)
+    ds = ingest_item(camp, "S2")
+    views = [camp.read_view(path) for path in camp.item("S2").views]
+    rows, cols = camp.crop.slices
+    for name, dtype in (("xyz", np.float32), ("intensity", np.float32), ("valid", bool), ("saturated", bool)):
+        assert ds[name].dtype == dtype
+    expected = np.stack([view.xyz[rows, cols] for view in views]).astype(np.float32)
+    assert ds["xyz"].values.tobytes() == expected.tobytes()
+    assert not np.array_equal(expected.astype(np.float64), np.stack([view.xyz[rows, cols] for view in views]))
+    expected = np.stack([view.intensity[rows, cols] for view in views]).astype(np.float32)
+    assert ds["intensity"].values.tobytes() == expected.tobytes()
+
+
 @pytest.mark.parametrize("size", [4, 8])
 def test_distortion_sizes(campaign, size):
     root, doc = campaign

@@ -63,8 +63,9 @@ def build_cube(views: Sequence[View], crop: Roi) -> xr.Dataset:
     """
     rows, cols = crop.slices
     stems = [view.path.stem for view in views]
-    xyz = np.stack([view.xyz[rows, cols] for view in views]).astype(np.float32)
-    intensity = np.stack([view.intensity[rows, cols] for view in views]).astype(np.float32)
+    # Cast as stacked, into one float32 array: no stack of float64 in between.
+    xyz = np.stack([view.xyz[rows, cols] for view in views], dtype=np.float32)
+    intensity = np.stack([view.intensity[rows, cols] for view in views], dtype=np.float32)
     valid = np.stack([view.radiometric[rows, cols] for view in views])
     saturated = np.stack([view.valid[rows, cols] for view in views]) & ~valid
     coords = {
