@@ -1,5 +1,6 @@
 """Tests of surffin.io.campaign: read_campaign's validation and read_truth."""
 
+import hashlib
 import json
 import threading
 
@@ -13,7 +14,7 @@ from surffin.errors import CampaignError, StoreError, ViewFileError
 from surffin.grid import Roi
 from surffin.io import campaign as campaign_module
 from surffin.io.campaign import Camera, check_pixels, read_campaign, read_truth
-from surffin.io.ingest import ingest_item
+from surffin.io.ingest import describe_file, ingest_item
 from surffin.io.store import open_store, write_store
 from surffin.io.viewfile import (
     ABCY16_DEFAULT,
@@ -236,6 +237,24 @@ def test_ingest_cube_holds_the_views_cropped_and_rounded_to_float32(campaign):
     assert not np.array_equal(expected.astype(np.float64), np.stack([view.xyz[rows, cols] for view in views]))
     expected = np.stack([view.intensity[rows, cols] for view in views]).astype(np.float32)
     assert ds["intensity"].values.tobytes() == expected.tobytes()
+
+
+@pytest.mark.parametrize("size", [0, 1, 3 << 20])
+def test_describe_file(tmp_path, size):
+    content = np.random.default_rng(size).bytes(size)
+    path = tmp_path / "file.npz"
+    path.write_bytes(content)
+    assert describe_file(path) == {"size": size, "sha256": hashlib.sha256(content).hexdigest()}
+
+
+def test_ingest_records_its_view_files(campaign):
+    root, doc = campaign
+    write_yaml(root, doc)
+    inputs = ingest_item(read_campaign(root), "S2").attrs["surffin_inputs"]
+    assert inputs == {
+        f"specimens/S2/{name}": {"size": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+        for name, data in ((name, (root / "specimens/S2" / name).read_bytes()) for name in ("v0.raw", "v1.ply"))
+    }
 
 
 @pytest.mark.parametrize("size", [4, 8])
