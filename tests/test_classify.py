@@ -231,6 +231,40 @@ def test_training_cap_keeps_evenly_spread_samples_of_every_item():
     assert sorted(np.unique(np.asarray(combined["class"].values).astype(str), return_counts=True)[1]) == [70, 70]
 
 
+@pytest.mark.parametrize("dtype", ["U", "S", "O", "T"])
+def test_sample_names_in_any_order_and_dtype(dtype):
+    # samples shuffled (no run of one item or class) and names as numpy unicode, bytes, objects or StringDType
+    training = training_set(specimens())
+    shuffled = training.isel(sample=np.random.default_rng(3).permutation(training.sizes["sample"]))
+    names = {key: np.asarray(shuffled[key].values).astype(str).tolist() for key in ("class", "item")}
+    as_dtype = {
+        "U": np.array,
+        "S": lambda values: np.array([value.encode() for value in values]),
+        "O": lambda values: np.array(values, dtype=object),
+        "T": lambda values: np.array(values, dtype=np.dtypes.StringDType()),
+    }[dtype]
+    shuffled = shuffled.assign(**{"class": ("sample", as_dtype(names["class"]))})
+    shuffled = shuffled.assign_coords(item=("sample", as_dtype(names["item"])))
+    pooled = combine_training(shuffled)
+    assert pooled.attrs["classes"] == sorted(set(names["class"]))
+    assert pooled.attrs["items"] == list(dict.fromkeys(names["item"]))
+    assert pooled.attrs["items"] != training.attrs["items"]  # the order of first appearance, not the items'
+    z = (pooled["features"].values - pooled["feature_mean"].values) / pooled["feature_std"].values
+    mean, _ = class_model(pooled)
+    for index, name in enumerate(pooled.attrs["classes"]):
+        np.testing.assert_array_equal(mean[index], z[np.array(names["class"]) == name].mean(axis=0))
+    scene = feature_image(CENTRES["S2"], seed=23)
+    scene["R0"][:6] = 0.5 * (CENTRES["S1"][0] + CENTRES["S3"][0])
+    label = classify(scene, pooled, k=3)["label"].values.ravel()
+    pixels = np.stack([scene[name].values.ravel() for name in FEATURES], axis=1)
+    reference = KNeighborsClassifier(3, algorithm="brute").fit(z, names["class"])
+    expected = reference.predict((pixels - pooled["feature_mean"].values) / pooled["feature_std"].values)
+    np.testing.assert_array_equal(np.array(pooled.attrs["classes"])[label], expected)
+    capped = combine_training(shuffled, max_per_class=100)
+    kept = [value.decode() if isinstance(value, bytes) else str(value) for value in capped["class"].values.tolist()]
+    assert {name: kept.count(name) for name in CENTRES} == dict.fromkeys(CENTRES, 100)
+
+
 @pytest.mark.parametrize("cap", [0, -3, 2.5, True])
 def test_training_cap_must_be_a_positive_integer(cap):
     with pytest.raises(ValueError, match="max_per_class"):
