@@ -170,6 +170,30 @@ def test_classify_takes_the_features_a_pixel_has():
     np.testing.assert_array_equal(np.array(training.attrs["classes"])[label.values.ravel()], expected)
 
 
+def test_every_pattern_of_missing_features_is_classified_on_the_features_it_leaves():
+    training = training_set(specimens())
+    scene = feature_image(CENTRES["S2"], spread=0.3, seed=24)  # wide: the classes' clusters overlap
+    missing = np.random.default_rng(5).random((len(FEATURES), *scene["R0"].shape)) < 0.4
+    for name, where in zip(FEATURES, missing):
+        scene[name] = scene[name].where(~where)
+    labels = classify(scene, training, k=3)
+    z = (training["features"].values - training["feature_mean"].values) / training["feature_std"].values
+    pixels = np.stack([scene[name].values.ravel() for name in FEATURES], axis=1)
+    pixels = (pixels - training["feature_mean"].values) / training["feature_std"].values
+    names = np.asarray(training["class"].values).astype(str)
+    label, reason = labels["label"].values.ravel(), labels["unclassified_reason"].values.ravel()
+    patterns = set()
+    for i, pixel in enumerate(pixels):
+        columns = np.flatnonzero(np.isfinite(pixel))
+        patterns.add(tuple(columns))
+        if columns.size < 2:
+            assert label[i] == -1 and reason[i] == 1
+            continue
+        reference = KNeighborsClassifier(3, algorithm="brute").fit(z[:, columns], names)
+        assert training.attrs["classes"][label[i]] == reference.predict(pixel[None, columns])[0]
+    assert len(patterns) == 2 ** len(FEATURES)
+
+
 def test_posterior_is_the_gaussian_class_model_with_the_pixels_uncertainty():
     training = training_set(specimens())
     mean, covariance = class_model(training)

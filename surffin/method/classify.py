@@ -440,11 +440,14 @@ def classify(
     labels = np.full(values.shape[0], UNCLASSIFIED, dtype=np.int16)
     posterior = np.full(values.shape[0], np.nan, dtype=np.float32)
     reason = np.where(available.sum(axis=1) < 2, _REASON_CODE["missing_feature"], 0).astype(np.int8)
-    patterns, inverse = np.unique(available, axis=0, return_inverse=True)
-    for pattern, rows in zip(patterns, (np.flatnonzero(inverse.ravel() == i) for i in range(len(patterns)))):
-        if pattern.sum() < 2:
+    # the features each pixel has as the bits of one integer (np.unique(available, axis=0) sorts the rows: 0.18 s)
+    bits = 1 << np.arange(len(FEATURES))
+    pattern = available @ bits
+    for code in np.unique(pattern):
+        columns = np.flatnonzero(code & bits)
+        if columns.size < 2:
             continue
-        columns = np.flatnonzero(pattern)
+        rows = np.flatnonzero(pattern == code)
         model = _neighbours(references[:, columns], target, k, n_jobs)
         points = standard[np.ix_(rows, columns)]
         predicted = model.predict(points).astype(np.int16)
