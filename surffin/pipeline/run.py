@@ -40,8 +40,9 @@ log = logging.getLogger("surffin")
 
 #: The input stores a process's stage jobs loaded, kept for its next jobs: a worker running an item's
 #: stages one after another (:func:`surffin.pipeline.jobs.in_worker`'s ``affinity``) reads each of the
-#: item's stores once, and the calibration once for all items.
-_LOADED = StoreCache(max_bytes=512 * 2**20)
+#: item's stores once, and the calibration once for all items. A worker per core keeps up to 256 MiB
+#: (a few items in flight and the calibration; 512 read no fewer stores in a 48-specimen run).
+_LOADED = StoreCache(max_bytes=256 * 2**20)
 
 #: Percentiles of each specimen's pixel n whose span over the specimens the roughness relation supports.
 SUPPORT_PERCENTILES = (2, 98)
