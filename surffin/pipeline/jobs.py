@@ -321,8 +321,8 @@ def in_worker(function: Callable, /, *args: Any, affinity: str | None = None, **
     lock: in threads, two jobs took as long as the same two one after the other.
     Each job's work therefore runs in a pool of worker processes, started once
     per run with surffin imported (``forkserver``), so that jobs run in parallel
-    without a process start-up each. A pool broken by a worker's crash fails
-    the jobs it was running and is replaced for the next ones.
+    without a process start-up each. A worker's crash fails the job it was
+    running, and the worker is replaced for the next ones.
 
     Parameters
     ----------
