@@ -13,9 +13,10 @@ its work in a worker process (``surffin.pipeline.jobs.in_worker``).
 - **jobs** = the jobs' wall times as they log them (``job done in X s``, read by
   ``surffin.pipeline.jobs.job_seconds``) x their threads, over the ``cores x wall`` budget; **overhead** =
   1 - jobs: snakemake's own time and idle cores; **snakemake CPU s**: the snakemake process's own CPU
-  time (user + system, its worker processes not counted). Snakemake's ``benchmark:`` directive, which
-  the rules no longer carry, sampled the memory of the whole process tree twice a second per job: 12-15 s
-  of system time in a 48-specimen run, against 0.6 s without it.
+  time (user + system, its worker processes not counted); **tree CPU s**: that of the snakemake process
+  and all its descendants (the workers), which a shared machine's load changes less than the wall time.
+  Snakemake's ``benchmark:`` directive, which the rules no longer carry, sampled the memory of the whole
+  process tree twice a second per job: 12-15 s of system time in a 48-specimen run, against 0.6 s without.
 - ``--variants``: ``scene figures`` (``item_figures: scenes``), ``ilp scheduler``, ``chunks 256``
   (against 512), ``item stages 2 threads`` (``--set-threads``: one per-item stage at a time, two dask
   threads) and ``processes`` (no ``force-use-threads``: each job a spawned snakemake process).
@@ -30,7 +31,6 @@ The machine is shared: wall times move with its load (printed with each run); me
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import json
 import multiprocessing
@@ -99,12 +99,13 @@ class Job:
 
 @dataclasses.dataclass
 class Usage:
-    """What a command used: wall seconds, peak summed RSS of its process tree, largest process's peak, own CPU s."""
+    """What a command used: wall s, summed RSS peak, largest process's peak, own and process tree's CPU s."""
 
     wall: float
     peak_mb: float
     max_process_mb: float
     own_cpu: float
+    tree_cpu: float
 
 
 @dataclasses.dataclass
@@ -164,8 +165,8 @@ def no_threads_profile(folder: Path) -> Path:
     return profile
 
 
-def tree_rss_mb(process: psutil.Process) -> float:
-    """Sum the RSS of a process and its descendants, MB (0 once it is gone)."""
+def tree_sample(process: psutil.Process, cpu: dict[int, float]) -> float:
+    """Sum the RSS of a process and its descendants, MB (0 once it is gone); note each one's CPU s in ``cpu``."""
     total = 0
     try:
         members = [process, *process.children(recursive=True)]
@@ -174,6 +175,8 @@ def tree_rss_mb(process: psutil.Process) -> float:
     for member in members:
         try:
             total += member.memory_info().rss
+            times = member.cpu_times()
+            cpu[member.pid] = times.user + times.system
         except psutil.Error:  # ended meanwhile
             pass
     return total / 2**20
@@ -183,21 +186,19 @@ def measured(cmd: list[str], cwd: Path, output: Path) -> tuple[int, Usage]:
     """Run ``cmd`` with stdout and stderr into ``output``; its exit code and what it used.
 
     The peak summed RSS is sampled every 0.2 s while it runs (and is at least the largest process's
-    peak), and so is the command's own CPU time (its last sample); that largest peak comes from ``wait4``
-    (the command and its waited-for descendants).
+    peak), and so are the CPU times of the command and of each of its descendants (their last samples:
+    up to 0.2 s of each process's end missed); that largest peak comes from ``wait4`` (the command and
+    its waited-for descendants).
     """
     with open(output, "w") as stream:
         start = time.perf_counter()
         child = subprocess.Popen(cmd, stdout=stream, stderr=subprocess.STDOUT, cwd=cwd)
-        peak, own, done = [0.0], [0.0], threading.Event()
+        peak, cpu, done = [0.0], {}, threading.Event()
 
         def sample():
             process = psutil.Process(child.pid)
             while not done.wait(0.2):
-                peak[0] = max(peak[0], tree_rss_mb(process))
-                with contextlib.suppress(psutil.Error):
-                    times = process.cpu_times()
-                    own[0] = times.user + times.system
+                peak[0] = max(peak[0], tree_sample(process, cpu))
 
         sampler = threading.Thread(target=sample, daemon=True)
         sampler.start()
@@ -207,7 +208,7 @@ def measured(cmd: list[str], cwd: Path, output: Path) -> tuple[int, Usage]:
         sampler.join()
         child.returncode = os.waitstatus_to_exitcode(status)  # reaped here, for wait4's rusage
     largest = rusage.ru_maxrss / 1024
-    usage = Usage(wall, max(peak[0], largest), largest, own[0])
+    usage = Usage(wall, max(peak[0], largest), largest, cpu.get(child.pid, 0.0), sum(cpu.values()))
     return child.returncode, usage
 
 
@@ -262,6 +263,7 @@ def report_campaigns(runs: list[Run]) -> None:
                 f"{busy:.0%}",
                 f"{1 - busy:.0%}",
                 round(run.usage.own_cpu, 1),
+                round(run.usage.tree_cpu, 1),
                 round(run.usage.peak_mb),
                 round(run.usage.max_process_mb),
                 run.load,
@@ -278,6 +280,7 @@ def report_campaigns(runs: list[Run]) -> None:
             "jobs",
             "overhead",
             "snakemake CPU s",
+            "tree CPU s",
             "peak MB",
             "max process MB",
             "before",
