@@ -17,7 +17,6 @@ from scipy.stats import chi2
 
 from surffin.analysis.sensitivity import (
     NOISE_LEVELS,
-    OUTPUTS,
     VIEW_COUNTS,
     aoi_derivative,
     configuration_rng,
@@ -31,6 +30,7 @@ from surffin.analysis.sensitivity import (
 from surffin.cli import main
 from surffin.io.store import open_store
 from surffin.pipeline.analyses import run_sensitivity
+from surffin.report.sensitivity import OUTPUTS
 
 DRAWS = 500
 # Band of the statistical checks, in standard errors of the estimate.

@@ -1,4 +1,4 @@
-"""Sensitivity of the scattering fit to reflectance and AOI noise (paper section 4, Figs. 11 and 12).
+"""Sensitivity of the scattering fit to reflectance and AOI noise (paper section 4; figures: report.sensitivity).
 
 A Monte Carlo of surffin's own per-pixel fit (:func:`surffin.method.scattering.fit_scattering`, the code that runs
 on data): every draw of one configuration is one "pixel" of a single call. Truth R0 = 1, n = 1 (:data:`TRUTH`), so
@@ -27,11 +27,7 @@ R0). Beside them, the linearised prediction: the covariance of the least-squares
 
 from __future__ import annotations
 
-import logging
 import numbers
-import os
-import time
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -51,7 +47,6 @@ __all__ = [
     "VIEW_COUNTS",
     "THRESHOLD",
     "DEFAULT_DRAWS",
-    "OUTPUTS",
     "jacobian",
     "aoi_derivative",
     "linearised_covariance",
@@ -60,12 +55,8 @@ __all__ = [
     "sensitivity_table",
     "views_slopes",
     "separation_summary",
-    "plot_separation",
-    "plot_views",
-    "write_sensitivity",
+    "table_frame",
 ]
-
-log = logging.getLogger("surffin")
 
 #: Parameters of the simulated surface (paper section 4).
 TRUTH = {"R0": 1.0, "n": 1.0}
@@ -93,8 +84,6 @@ _PARAMETERS = tuple(TRUTH)
 # Standard errors of the std estimate within which the Monte Carlo "agrees" with
 # the linearised prediction (see separation_summary).
 _AGREEMENT_ERRORS = 3.0
-# The resolution of surffin.report.canvas.DPI, which this layer does not import.
-_FIGURE_DPI = 120
 
 
 # --- linearised prediction ---------------------------------------------------------------------
@@ -399,7 +388,8 @@ def sensitivity_table(draws: int = DEFAULT_DRAWS, seed: int = 0) -> xr.Dataset:
     return table
 
 
-def _frame(table: xr.Dataset) -> pd.DataFrame:
+def table_frame(table: xr.Dataset) -> pd.DataFrame:
+    """Return a table of :func:`sensitivity_table` (or :func:`views_slopes`) as a pandas DataFrame, a row each."""
     return table.to_dataframe().reset_index(drop=True)
 
 
@@ -432,7 +422,7 @@ def views_slopes(table: xr.Dataset) -> xr.Dataset:
         ``predicted_slope`` (the same for the linearised std; NaN where it is
         zero), ``paper_slope`` (the paper's statement: -1/2 for R0, -1 for n).
     """
-    frame = _frame(table)
+    frame = table_frame(table)
     frame = frame[frame["case"] == "views"]
     if frame.empty:
         raise ValueError("views_slopes: the table has no rows of case 'views'")
@@ -492,7 +482,7 @@ def separation_summary(table: xr.Dataset, threshold: float = THRESHOLD) -> xr.Da
         fails at any larger separation (failed fits are left out of the std).
     """
     threshold = _check_positive("threshold", threshold)
-    frame = _frame(table)
+    frame = table_frame(table)
     frame = frame[frame["case"] == "separation"]
     if frame.empty:
         raise ValueError("separation_summary: the table has no rows of case 'separation'")
@@ -532,258 +522,3 @@ def _longest_run(flags: np.ndarray) -> tuple[int, int]:
                 best = (start, index - 1)
             start = None
     return best
-
-
-# --- figures -------------------------------------------------------------------------------------
-
-
-_LEVEL_COLOURS = {"min": "tab:blue", "max": "tab:red"}
-# The paper clips Fig. 11 at 50 %: beyond it the features are useless for classification.
-_SEPARATION_YLIM = (-10.0, 50.0)
-
-
-def _figure(width: float, height: float):
-    from matplotlib.figure import Figure
-
-    return Figure(figsize=(width, height), layout="constrained")
-
-
-def _save(fig, path) -> Path:
-    import io
-
-    from surffin.io.files import write_atomically
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format=path.suffix.lstrip(".") or "png", dpi=_FIGURE_DPI)
-    write_atomically(path, buffer.getvalue())
-    return path
-
-
-def _noise_title(noise: str) -> str:
-    return "reflectance noise (AOI exact)" if noise == "reflectance" else "AOI noise (reflectance exact)"
-
-
-def _level_label(noise: str, level: str, sigma: float) -> str:
-    unit = "" if NOISE_UNITS[noise] == "1" else " deg"
-    return f"{level} σ = {sigma:g}{unit}"
-
-
-def _legend(ax, noise: str, frame: pd.DataFrame, styles: dict[str, dict], loc: str) -> None:
-    """One legend entry per noise level (colour) and per drawn quantity (black line style)."""
-    from matplotlib.lines import Line2D
-
-    sigmas = frame[frame["noise"] == noise].groupby("level")["sigma"].first()
-    handles = [
-        Line2D([], [], color=_LEVEL_COLOURS[level], linewidth=2, label=_level_label(noise, level, sigma))
-        for level, sigma in sigmas.items()
-    ]
-    handles += [Line2D([], [], label=label, **{"color": "black", **style}) for label, style in styles.items()]
-    ax.legend(handles=handles, fontsize=8, loc=loc)
-
-
-def _panels(table: xr.Dataset, case: str, abscissa: str, xlabel: str, styles: dict[str, dict], loc: str):
-    """Draw a 2 x 2 figure (rows: noise types, columns: parameters) of one case's rows.
-
-    Returns the figure, the case's rows and, per panel, ``(ax, noise, parameter,
-    {level: rows sorted by abscissa})``; the panels are labelled, titled by
-    letter, noise and parameter, and carry the legend of ``styles``.
-    """
-    frame = _frame(table)
-    frame = frame[frame["case"] == case]
-    fig = _figure(12.0, 8.5)
-    axes = fig.subplots(2, 2, sharex=True)
-    panels = []
-    for row, noise in enumerate(NOISE_LEVELS):
-        for column, parameter in enumerate(_PARAMETERS):
-            ax = axes[row, column]
-            rows = frame[(frame["noise"] == noise) & (frame["parameter"] == parameter)]
-            groups = {level: group.sort_values(abscissa) for level, group in rows.groupby("level")}
-            ax.set_title(f"({'abcd'[2 * row + column]}) {parameter}, {_noise_title(noise)}", fontsize=10)
-            ax.set_ylabel(f"error of {parameter} (% of truth)")
-            if row == 1:
-                ax.set_xlabel(xlabel)
-            _legend(ax, noise, frame, styles, loc)
-            panels.append((ax, noise, parameter, groups))
-    return fig, frame, panels
-
-
-def _draws(frame: pd.DataFrame) -> int:
-    return int(frame["draws"].max()) if not frame.empty else 0
-
-
-_SEPARATION_STYLES = {
-    "SD (Monte Carlo)": {"linestyle": "-", "marker": "o", "markersize": 3},
-    "bias": {"linestyle": "--", "linewidth": 1},
-    "linearised SD": {"linestyle": ":", "linewidth": 1.8},
-    "failed fits (% of draws)": {"linestyle": "-.", "linewidth": 0.8},
-}
-_VIEWS_STYLES = {
-    "SD (Monte Carlo)": {"linestyle": "-", "marker": "o", "markersize": 4},
-    "linearised SD": {"linestyle": ":", "linewidth": 1.8},
-    "|bias|": {"linestyle": "none", "marker": "x", "markersize": 5},
-    "K^-1/2 through K = 10": {"linestyle": (0, (4, 2)), "linewidth": 0.8, "color": "0.55"},
-    "K^-1 through K = 10": {"linestyle": (0, (1, 2)), "linewidth": 0.8, "color": "0.55"},
-}
-
-
-def plot_separation(table: xr.Dataset, path: str | os.PathLike) -> Path:
-    """Paper Fig. 11: bias and std of R0 and n against the separation of two views.
-
-    Rows: reflectance noise, AOI noise; columns: R0, n. Per noise level the
-    Monte Carlo std, bias, linearised std and the share of failed fits, all in
-    % of the truth, clipped to -10..50 % (the paper clips at 50 %).
-
-    Parameters
-    ----------
-    table : Dataset
-        A :func:`sensitivity_table`.
-    path : path-like
-        The image to write (written atomically).
-
-    Returns
-    -------
-    Path
-    """
-    fig, frame, panels = _panels(
-        table,
-        "separation",
-        "separation_deg",
-        "angular separation of the two views (deg); one view at 45 deg",
-        _SEPARATION_STYLES,
-        "upper right",
-    )
-    styles = list(_SEPARATION_STYLES.values())
-    for ax, _, _, groups in panels:
-        for level, group in groups.items():
-            x = group["separation_deg"]
-            curves = (group["std"], group["bias"], group["predicted_std"], group["failed"] / group["draws"])
-            for values, style in zip(curves, styles):
-                ax.plot(x, 100 * values, color=_LEVEL_COLOURS[level], **style)
-        ax.axhline(100 * THRESHOLD, color="0.3", linewidth=0.8)
-        ax.axhline(0.0, color="0.6", linewidth=0.5)
-        ax.set_ylim(*_SEPARATION_YLIM)
-        ax.set_xlim(0, max(SEPARATIONS_DEG) + 1)
-        ax.grid(True, alpha=0.3)
-    fig.suptitle(f"Two views: errors against separation ({_draws(frame)} draws, truth R0 = n = 1; grey line: 10 %)")
-    return _save(fig, path)
-
-
-def plot_views(table: xr.Dataset, path: str | os.PathLike) -> Path:
-    """Paper Fig. 12: std and |bias| of R0 and n against the number of views K, log-log.
-
-    Rows: reflectance noise, AOI noise; columns: R0, n. Per noise level the
-    Monte Carlo std, the linearised std (where not zero), |bias| (where within
-    the axis range, which follows the std) and reference slopes K^-1/2 and K^-1
-    through the Monte Carlo std at K = 10; the titles give the fitted slopes.
-
-    Parameters
-    ----------
-    table : Dataset
-        A :func:`sensitivity_table`.
-    path : path-like
-        The image to write (written atomically).
-
-    Returns
-    -------
-    Path
-    """
-    slopes = _frame(views_slopes(table)).set_index(["noise", "level", "parameter"])["slope"]
-    fig, frame, panels = _panels(
-        table, "views", "n_views", f"number of views K over 0..{SPAN_DEG:g} deg", _VIEWS_STYLES, "best"
-    )
-    line, predicted_style, bias_style, *references = _VIEWS_STYLES.values()
-    for ax, noise, parameter, groups in panels:
-        for level, group in groups.items():
-            colour = _LEVEL_COLOURS[level]
-            k = group["n_views"].to_numpy(dtype=float)
-            std = 100 * group["std"].to_numpy()
-            predicted = 100 * group["predicted_std"].to_numpy()
-            ax.plot(k, std, color=colour, **line)
-            ax.plot(k[predicted > 0], predicted[predicted > 0], color=colour, **predicted_style)
-            ax.plot(k, 100 * np.abs(group["bias"].to_numpy()), color=colour, **bias_style)
-            for exponent, style in zip((-0.5, -1.0), references):
-                ax.plot(k, std[-1] * (k / k[-1]) ** exponent, **style)
-        shown = np.concatenate([100 * group["std"].to_numpy() for group in groups.values()])
-        ax.set_ylim(0.5 * shown.min(), 2.0 * shown.max())
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_xticks(list(VIEW_COUNTS), [str(k) for k in VIEW_COUNTS])
-        ax.minorticks_off()
-        ax.grid(True, which="both", alpha=0.3)
-        fitted = ", ".join(f"{level} {slopes[(noise, level, parameter)]:+.2f}" for level in groups)
-        ax.set_title(f"{ax.get_title()}; slope {fitted}", fontsize=10)
-    fig.suptitle(f"K views equally spaced over 0..45 deg: errors ({_draws(frame)} draws, truth R0 = n = 1; log-log)")
-    return _save(fig, path)
-
-
-# --- the files of a run --------------------------------------------------------------------------
-
-
-#: Files :func:`write_sensitivity` writes in its output folder: key -> file name.
-OUTPUTS = {
-    "table": "sensitivity.csv",
-    "store": "sensitivity.zarr",
-    "slopes": "slopes.csv",
-    "separation_figure": "separation.png",
-    "views_figure": "views.png",
-}
-
-
-def _write_csv(frame: pd.DataFrame, path: Path) -> Path:
-    from surffin.io.files import write_atomically
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomically(path, frame.to_csv(index=False, float_format="%.6g").encode("utf-8"))
-    return path
-
-
-def write_sensitivity(
-    out_dir: str | os.PathLike, *, draws: int = DEFAULT_DRAWS, seed: int = 0, code_version: int | None = None
-) -> dict[str, Path]:
-    """Run the Monte Carlo and write the table, its store, the slopes and both figures.
-
-    The workflow's job is :func:`surffin.pipeline.analyses.run_sensitivity`.
-
-    Parameters
-    ----------
-    out_dir : path-like
-        Output folder; the files are :data:`OUTPUTS`, each written atomically.
-    draws : int >= 2
-        Draws per configuration.
-    seed : int >= 0
-        Seed of the run (see :func:`configuration_rng`).
-    code_version : int, optional
-        Recorded in the store's provenance (the stage table's version of the stage).
-
-    Returns
-    -------
-    dict of str to Path
-        The written files by the keys of :data:`OUTPUTS`.
-    """
-    from surffin.io.store import provenance, write_store
-
-    draws = _check_count("draws", draws, 2)
-    seed = _check_count("seed", seed, 0)
-    out = Path(out_dir)
-    paths = {key: out / name for key, name in OUTPUTS.items()}
-    start = time.perf_counter()
-    table = sensitivity_table(draws, seed)
-    log.info(
-        "sensitivity: %d rows (%d draws per configuration) in %.2f s",
-        table.sizes["row"],
-        draws,
-        time.perf_counter() - start,
-    )
-    slopes = views_slopes(table)
-    _write_csv(_frame(table), paths["table"])
-    table.attrs |= provenance("sensitivity", {"draws": draws, "seed": seed}, version=code_version)
-    write_store(table, paths["store"])
-    _write_csv(_frame(slopes), paths["slopes"])
-    plot_separation(table, paths["separation_figure"])
-    plot_views(table, paths["views_figure"])
-    log.info(
-        "sensitivity: wrote %s in %s; done in %.2f s", ", ".join(OUTPUTS.values()), out, time.perf_counter() - start
-    )
-    return paths

@@ -12,10 +12,11 @@ import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from surffin.analysis.sensitivity import DEFAULT_DRAWS, write_sensitivity
+from surffin.analysis.sensitivity import DEFAULT_DRAWS
 from surffin.grid import Roi
 from surffin.pipeline.jobs import job_seconds, logging_to
 from surffin.pipeline.table import STAGES
+from surffin.report.sensitivity import write_sensitivity
 
 __all__ = ["run_calibration_diagnostics", "run_sensitivity", "run_paper_comparison", "run_figures", "run_export"]
 
@@ -92,19 +93,19 @@ def run_sensitivity(
     seed: int = 0,
     log_path: str | os.PathLike | None = None,
 ) -> dict[str, Path]:
-    """Run the sensitivity Monte Carlo and write its files (:func:`surffin.analysis.sensitivity.write_sensitivity`).
+    """Run the sensitivity Monte Carlo and write its files (:func:`surffin.report.sensitivity.write_sensitivity`).
 
     Parameters
     ----------
     out_dir, draws, seed
-        As for :func:`~surffin.analysis.sensitivity.write_sensitivity`.
+        As for :func:`~surffin.report.sensitivity.write_sensitivity`.
     log_path : path-like, optional
         The job's log file.
 
     Returns
     -------
     dict of str to Path
-        The written files by the keys of :data:`surffin.analysis.sensitivity.OUTPUTS`.
+        The written files by the keys of :data:`surffin.report.sensitivity.OUTPUTS`.
     """
     with logging_to(log_path):
         return write_sensitivity(out_dir, draws=draws, seed=seed, code_version=STAGES["sensitivity"].version)

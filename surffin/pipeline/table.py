@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 from surffin.analysis.diagnostics import calibration_report
 from surffin.analysis.reproduction import write_comparison
-from surffin.analysis.sensitivity import write_sensitivity
 from surffin.analysis.summary import summarise
 from surffin.io.ingest import ingest_item
 from surffin.method.calibration import calibrate
@@ -25,6 +24,7 @@ from surffin.method.roughness import roughness_relation
 from surffin.method.stages import ITEM_CHAIN, labels_stage, roughness_stage
 from surffin.report.export import export_results
 from surffin.report.figures import write_figures
+from surffin.report.sensitivity import write_sensitivity
 
 __all__ = ["Stage", "STAGES", "CHAIN", "stage_of", "output_path", "input_paths"]
 

@@ -3,7 +3,6 @@ from pathlib import Path
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
-from surffin.analysis.sensitivity import OUTPUTS as SENSITIVITY_FILES
 from surffin.errors import SurffinError
 from surffin.io.campaign import NAME_PATTERN
 from surffin.method.stages import aoi_stage, features_stage, labels_stage, reflectance_stage, registration_stage
@@ -28,6 +27,7 @@ from surffin.pipeline.run import (
 )
 from surffin.pipeline.table import CHAIN, STAGES, input_paths, output_path
 from surffin.pipeline.workflow import Plan
+from surffin.report.sensitivity import OUTPUTS as SENSITIVITY_FILES
 
 validate(config, "../schemas/config.schema.yaml")
 
