@@ -14,17 +14,14 @@ checkouts' stores are the same byte for byte.
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import yaml
+from _trees import THIS_TREE, run_in_tree  # benchmarks/_trees.py: this folder is on sys.path when run as a script
 
-ROOT = Path(__file__).resolve().parents[1]
 JOBS = ("training", "labels")
 
 
@@ -43,7 +40,7 @@ def run_job(job: str, campaign: str, processed: str, scene: str, output: str) ->
     from surffin.pipeline.workflow import Plan
 
     cv2.setNumThreads(1)
-    config = {**yaml.safe_load((ROOT / "config" / "config.yaml").read_text()), "processed": processed}
+    config = {**yaml.safe_load((THIS_TREE / "config" / "config.yaml").read_text()), "processed": processed}
     plan = Plan(read_campaign(campaign, check_views=False), config)
     start = time.process_time()
     if job == "training":
@@ -86,18 +83,16 @@ def main():
         return
     if args.other is None:
         parser.error("--other is required")
-    checkouts = {"other": args.other.resolve(), "this": ROOT}
+    checkouts = {"other": args.other.resolve(), "this": THIS_TREE}
     with tempfile.TemporaryDirectory() as tmp:
         print(f"{'job':10s} {'other s':>8s} {'this s':>8s} {'ratio':>6s}  stores")
         for job in JOBS:
             seconds = {name: [] for name in checkouts}
             for round_ in range(args.rounds):
                 for name in sorted(checkouts, reverse=bool(round_ % 2)):
-                    command = [sys.executable, __file__, "--child", job, "--output", f"{tmp}/{job}-{name}.zarr"]
-                    command += ["--campaign", args.campaign, "--processed", args.processed, "--scene", args.scene]
-                    environment = {**os.environ, "PYTHONPATH": str(checkouts[name])}
-                    done = subprocess.run(command, env=environment, capture_output=True, text=True, check=True)
-                    seconds[name].append(float(done.stdout.split()[-1]))
+                    arguments = ["--child", job, "--output", f"{tmp}/{job}-{name}.zarr"]
+                    arguments += ["--campaign", args.campaign, "--processed", args.processed, "--scene", args.scene]
+                    seconds[name].append(float(run_in_tree(checkouts[name], __file__, *arguments).split()[-1]))
             other, this = (statistics.median(seconds[name]) for name in checkouts)
             same = files(Path(tmp, f"{job}-other.zarr")) == files(Path(tmp, f"{job}-this.zarr"))
             print(f"{job:10s} {other:8.3f} {this:8.3f} {other / this:6.3f}  {'identical' if same else 'DIFFER'}")

@@ -16,15 +16,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import xarray as xr
+from _trees import THIS_TREE, run_in_tree  # benchmarks/_trees.py: this folder is on sys.path when run as a script
 
 from surffin.io.campaign import read_campaign
 from surffin.io.store import open_store
@@ -63,15 +61,15 @@ def differences(old: xr.Dataset, new: xr.Dataset) -> list[str]:
 
 def compare_trees(campaign: Path, baseline: Path, items: list[str], repeat: int) -> None:
     """Print the median CPU seconds of each tree, their ratio, and whether the ingest stores agree."""
-    trees = {"old": baseline, "new": Path(__file__).resolve().parents[1]}
+    trees = {"old": baseline, "new": THIS_TREE}
     seconds = {label: {} for label in trees}
     with tempfile.TemporaryDirectory() as tmp:
         for _ in range(repeat):
             for label, tree in trees.items():
-                command = [sys.executable, __file__, str(campaign), "--outputs", str(Path(tmp, label)), "--items"]
-                env = {**os.environ, "PYTHONPATH": str(tree)}
-                run = subprocess.run([*command, *items], env=env, check=True, capture_output=True, text=True)
-                for task, value in json.loads(run.stdout).items():
+                printed = run_in_tree(
+                    tree, __file__, str(campaign), "--outputs", str(Path(tmp, label)), "--items", *items
+                )
+                for task, value in json.loads(printed).items():
                     seconds[label].setdefault(task, []).append(value)
         different = {}
         for item in items:

@@ -23,9 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -35,6 +32,7 @@ import xarray as xr
 
 # benchmarks/: this folder is on sys.path when run as a script
 from _paper import paper_campaign
+from _trees import THIS_TREE, run_in_tree
 from bench_chunks import CONFIG, quiet_logs, run_chain
 
 from surffin.io.campaign import read_truth
@@ -92,16 +90,15 @@ def time_stages(processed: Path, items: list[str], outputs: Path | None) -> dict
 
 def compare_trees(processed: Path, baseline: Path, items: list[str], repeat: int) -> None:
     """Print the CPU seconds per item of each stage, ``baseline``'s tree against this one, and if they agree."""
-    trees = {"old": baseline, "new": Path(__file__).resolve().parents[1]}
+    trees = {"old": baseline, "new": THIS_TREE}
     seconds = {label: {stage: [] for stage in STAGES} for label in trees}
     with tempfile.TemporaryDirectory() as tmp:
         for round_ in range(repeat):
             for label, tree in trees.items():
                 outputs = Path(tmp, label) if round_ == 0 else None
-                command = [sys.executable, __file__, "--stores", str(processed), "--time-only", "--items", *items]
-                command += ["--outputs", str(outputs)] if outputs else []
-                env = {**os.environ, "PYTHONPATH": str(tree)}
-                runs = json.loads(subprocess.run(command, env=env, check=True, capture_output=True, text=True).stdout)
+                arguments = ["--stores", str(processed), "--time-only", "--items", *items]
+                arguments += ["--outputs", str(outputs)] if outputs else []
+                runs = json.loads(run_in_tree(tree, __file__, *arguments))
                 for stage, by_item in runs.items():
                     seconds[label][stage].append(sum(by_item.values()) / len(by_item))
         results = {
