@@ -1,4 +1,5 @@
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -156,6 +157,27 @@ def test_floats_uncompressed_masks_compressed(tmp_path):
 
 
 def test_crash_leaves_previous_store_and_no_lookalike(tmp_path, monkeypatch):
+    """Killed after some of a store's files are written."""
+    path = write_store(cube(seed=1), tmp_path / "s.zarr")
+    written = []
+    write_bytes = Path.write_bytes
+
+    def explode(self, *args, **kwargs):
+        written.append(self)
+        if len(written) == 3:
+            raise RuntimeError("killed")
+        return write_bytes(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "write_bytes", explode)
+    with pytest.raises(RuntimeError):
+        write_store(cube(seed=2), path)
+    monkeypatch.undo()
+    assert len(written) == 3
+    xr.testing.assert_identical(open_store(path).load(), cube(seed=1))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.zarr"]
+
+
+def test_crash_of_a_dask_backed_write_leaves_previous_store(tmp_path, monkeypatch):
     path = write_store(cube(seed=1), tmp_path / "s.zarr")
 
     def explode(self, *args, **kwargs):
@@ -163,7 +185,7 @@ def test_crash_leaves_previous_store_and_no_lookalike(tmp_path, monkeypatch):
 
     monkeypatch.setattr(xr.Dataset, "to_zarr", explode)
     with pytest.raises(RuntimeError):
-        write_store(cube(seed=2), path)
+        write_store(cube(seed=2).chunk(), path)
     monkeypatch.undo()
     xr.testing.assert_identical(open_store(path).load(), cube(seed=1))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.zarr"]

@@ -32,6 +32,7 @@ import zarr
 
 from surffin._version import __version__
 from surffin.errors import StoreError
+from surffin.io.zarrwrite import encode_store
 from surffin.paper import CITATION
 
 __all__ = [
@@ -194,18 +195,25 @@ def _strings_as_objects(ds: xr.Dataset) -> xr.Dataset:
     # Fixed-width unicode has no zarr v3 specification; variable-length strings do.
     # Strings are small labels: they are held in memory, never as dask arrays,
     # whose object dtype xarray would have to load to encode anyway.
-    fixed = {name: ds[name].compute().astype(object) for name, var in ds.variables.items() if var.dtype.kind in "UO"}
+    # Variables, not DataArrays: a DataArray would bring back its index coordinate as it was (fixed-width).
+    fixed = {name: var.compute().astype(object) for name, var in ds.variables.items() if var.dtype.kind in "UO"}
     coords = {name: arr for name, arr in fixed.items() if name in ds.coords}
     data = {name: arr for name, arr in fixed.items() if name not in ds.coords}
     return ds.assign_coords(coords).assign(data)
 
 
-def _write_files(encoded: Mapping, folder: Path) -> None:
-    """Write the documents and chunks of a store encoded in memory (key -> buffer) as zarr's file store would."""
-    for key, buffer in encoded.items():
+def _write_files(encoded: Mapping[str, bytes], folder: Path) -> None:
+    """Write the documents and chunks of a store encoded in memory (key -> bytes) as zarr's file store would."""
+    for key, content in encoded.items():
         file = folder.joinpath(*key.split("/"))
         file.parent.mkdir(parents=True, exist_ok=True)
-        file.write_bytes(buffer.to_bytes())
+        file.write_bytes(content)
+
+
+def _to_zarr(ds: xr.Dataset, target, encoding: Mapping, compute: bool):
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
+        return ds.to_zarr(target, mode="w-", zarr_format=3, consolidated=True, encoding=encoding, compute=compute)
 
 
 def write_store(
@@ -245,26 +253,22 @@ def write_store(
     for variable in ds.variables.values():
         variable.attrs = encode_attrs(variable.attrs)
     partial = path.parent / f".{path.name}{_PARTIAL}{uuid.uuid4().hex[:12]}"
-    # A Dataset in memory is encoded into memory at once and its files written in one go: through
-    # zarr's file store (a thread hop per document and chunk) an item's stores took 1.15-1.65x as long
-    # to write (benchmarks/bench_store.py), the files byte-identical, and a delayed write's compute on
-    # dask's default scheduler imported dask.distributed (0.3 s) to look for a client. Dask arrays are
-    # written chunk by chunk to the files: memory follows the chunks, any scheduler (a cluster's) can.
-    encoded: dict = {}
+    # A Dataset in memory is encoded into memory at once and its files written in one go: by
+    # zarrwrite.encode_store, which writes the files to_zarr would at a tenth of its CPU, or when it
+    # cannot, by to_zarr into a memory store (through zarr's file store, a thread hop per document and
+    # chunk, an item's stores took 1.15-1.65x as long, and a delayed write's compute imported
+    # dask.distributed to look for a client). Dask arrays are written chunk by chunk to the files:
+    # memory follows the chunks, any scheduler (a cluster's) can.
     try:
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
-            written = ds.to_zarr(
-                zarr.storage.MemoryStore(encoded) if in_memory else partial,
-                mode="w-",
-                zarr_format=3,
-                consolidated=True,
-                encoding=_encoding(ds, chunking if in_memory else None),
-                compute=in_memory,
-            )
-            if not in_memory:
-                written.compute(scheduler=scheduler)
-        _write_files(encoded, partial)
+        if in_memory:
+            encoded = encode_store(ds, chunking)
+            if encoded is None:
+                memory: dict = {}
+                _to_zarr(ds, zarr.storage.MemoryStore(memory), _encoding(ds, chunking), compute=True)
+                encoded = {key: buffer.to_bytes() for key, buffer in memory.items()}
+            _write_files(encoded, partial)
+        else:
+            _to_zarr(ds, partial, _encoding(ds), compute=False).compute(scheduler=scheduler)
         if path.exists():
             retired = path.parent / f".{path.name}{_RETIRED}{uuid.uuid4().hex[:12]}"
             os.replace(path, retired)

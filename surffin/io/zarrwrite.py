@@ -1,0 +1,195 @@
+"""The files of a store, encoded from a Dataset in memory as ``Dataset.to_zarr`` writes them, at a fraction of its cost.
+
+``to_zarr`` into a zarr v3 store costs ~30 ms of CPU a store, nearly all of it zarr-python's work per
+array (metadata objects, an event-loop hop per call, the codec pipeline), against ~3 ms for the
+bytes of the files; a run writes ~250 stores (``python benchmarks/bench_store.py``).
+:func:`encode_store` makes the same files, byte for byte, for what surffin's stores hold: numeric
+and boolean arrays in memory, variable-length strings, the floats uncompressed and the rest
+compressed with zstd, regular chunks, consolidated metadata, xarray's ``_FillValue`` and
+``coordinates`` attributes. For anything else it returns None and the caller writes with
+``to_zarr``. The tests compare the two writers' files on every kind of store a run writes, so a
+version of zarr or xarray that writes otherwise is caught there.
+"""
+
+from __future__ import annotations
+
+import base64
+import itertools
+import json
+import math
+import struct
+import unicodedata
+from collections.abc import Mapping
+
+import numpy as np
+import xarray as xr
+from numcodecs import VLenUTF8, Zstd
+
+__all__ = ["encode_store"]
+
+_ZSTD = {"name": "zstd", "configuration": {"level": 0, "checksum": False}}
+_LITTLE = {"name": "bytes", "configuration": {"endian": "little"}}
+#: zarr's chunks for an array given none (an index coordinate): the whole array up to this size.
+_WHOLE_BYTES = 128 * 1024
+_NUMERIC = "fiub"
+
+
+def _attribute(value):
+    """Return an attribute value as xarray hands it to zarr: numpy arrays as lists, numpy scalars as Python's."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _strings(data: np.ndarray) -> bool:
+    if data.dtype.kind == "T":
+        return True
+    return data.dtype == object and all(isinstance(value, str) for value in data.reshape(-1))
+
+
+def _kind(data: np.ndarray) -> tuple[str, object, object, list] | None:
+    """Return an array's zarr data type, fill value (as stored and in JSON) and codecs; None if not written here."""
+    if _strings(data):
+        return "string", "", "", [{"name": "vlen-utf8", "configuration": {}}, _ZSTD]
+    if data.dtype.kind not in _NUMERIC or data.dtype.byteorder == ">" or data.dtype.kind == "f" and data.itemsize < 4:
+        return None
+    if data.dtype.kind == "f":
+        return data.dtype.name, np.nan, "NaN", [_LITTLE]
+    fill = False if data.dtype.kind == "b" else 0
+    return data.dtype.name, fill, fill, [{"name": "bytes"} if data.itemsize == 1 else _LITTLE, _ZSTD]
+
+
+def _empty(chunk: np.ndarray, fill) -> bool:
+    """Tell whether a chunk holds only the fill value (zarr writes no file for it)."""
+    if chunk.dtype.kind == "f":
+        return bool(np.isnan(chunk).all())
+    return bool((chunk == fill).all())
+
+
+def _chunk_bytes(chunk: np.ndarray) -> bytes:
+    if chunk.dtype.kind in "OT":
+        return Zstd(level=0, checksum=False).encode(VLenUTF8().encode(chunk.astype(object)))
+    raw = chunk.astype(chunk.dtype.newbyteorder("<"), copy=False).tobytes()
+    return raw if chunk.dtype.kind == "f" else Zstd(level=0, checksum=False).encode(raw)
+
+
+def _chunks(name: str, data: np.ndarray, shape: tuple[int, ...], fill) -> dict[str, bytes]:
+    """Return the chunk files of an array: edge chunks padded with the fill value, chunks of fill value left out."""
+    files = {}
+    counts = [math.ceil(size / step) for size, step in zip(data.shape, shape)]
+    for index in itertools.product(*(range(count) for count in counts)):
+        part = data[tuple(slice(i * step, (i + 1) * step) for i, step in zip(index, shape))]
+        if part.shape != shape:
+            padded = np.full(shape, fill, dtype=data.dtype)
+            padded[tuple(slice(0, size) for size in part.shape)] = part
+            part = padded
+        if not _empty(part, fill):
+            files["/".join((name, "c", *map(str, index)))] = _chunk_bytes(np.ascontiguousarray(part))
+    return files
+
+
+def _coordinates(ds: xr.Dataset) -> tuple[dict[str, str], str | None]:
+    """Return xarray's ``coordinates`` attributes: per variable, and the dataset's for those no variable names."""
+    others = [name for name in ds.coords if name not in ds.dims]
+    per_variable = {}
+    for name, variable in ds.variables.items():
+        named = sorted(
+            str(coord)
+            for coord in others
+            if name not in others and name not in variable.dims and set(ds.variables[coord].dims) <= set(variable.dims)
+        )
+        if named:
+            per_variable[name] = " ".join(named)
+    written = {coord for text in per_variable.values() for coord in text.split()}
+    orphans = sorted(str(coord) for coord in others if coord not in written)
+    return per_variable, " ".join(orphans) or None
+
+
+def encode_store(ds: xr.Dataset, chunking: Mapping[str, int]) -> dict[str, bytes] | None:
+    """Return the files of ``ds`` as a consolidated zarr v3 store (relative path -> bytes), as ``to_zarr`` writes them.
+
+    Parameters
+    ----------
+    ds : Dataset
+        In memory, its encoding dropped, its strings as object arrays and its attributes JSON-ready, as
+        :func:`surffin.io.store.write_store` hands it to ``to_zarr``.
+    chunking : mapping of str to int
+        Chunk size per dimension of the variables that are not indexes (-1 or absent: whole).
+
+    Returns
+    -------
+    dict or None
+        None when ``ds`` holds what this writer does not write (a dtype, a variable or attribute
+        named ``coordinates`` or ``_FillValue``, a large index, names equal but for case): write it
+        with ``to_zarr``.
+    """
+    names = list(ds.variables)
+    if any(not isinstance(name, str) or "/" in name or " " in name for name in names):
+        return None
+    folded = [unicodedata.normalize("NFKC", name).casefold() for name in names]
+    if len(set(folded)) < len(names):  # zarr's order of the consolidated documents: by these keys
+        return None
+    per_variable, orphans = _coordinates(ds)
+    root_attrs = {key: _attribute(value) for key, value in ds.attrs.items()}
+    if orphans is not None:
+        if "coordinates" in root_attrs:
+            return None
+        root_attrs["coordinates"] = orphans
+    files, documents = {}, {}
+    for name, variable in ds.variables.items():
+        data = variable.values
+        kind = _kind(data)
+        if kind is None or "_FillValue" in variable.attrs or "coordinates" in variable.attrs:
+            return None
+        data_type, fill, json_fill, codecs = kind
+        if name in ds.indexes:
+            if data.nbytes > _WHOLE_BYTES:
+                return None
+            shape = data.shape
+        else:
+            shape = tuple(
+                size if chunking.get(dim, -1) == -1 else min(chunking[dim], size)
+                for dim, size in zip(variable.dims, data.shape)
+            )
+        attrs = {key: _attribute(value) for key, value in variable.attrs.items()}
+        if name in per_variable:
+            attrs["coordinates"] = per_variable[name]
+        if data_type.startswith("float"):
+            attrs["_FillValue"] = base64.standard_b64encode(struct.pack("<d", math.nan)).decode()
+        documents[name] = {
+            "shape": list(data.shape),
+            "data_type": data_type,
+            "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": list(shape)}},
+            "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
+            "fill_value": json_fill,
+            "codecs": codecs,
+            "attributes": attrs,
+            "dimension_names": list(variable.dims),
+            "zarr_format": 3,
+            "node_type": "array",
+            "storage_transformers": [],
+        }
+        if not variable.dims:  # zarr leaves out the names of no dimensions
+            del documents[name]["dimension_names"]
+        files |= _chunks(name, data, shape, fill)
+    for name, document in documents.items():
+        files[f"{name}/zarr.json"] = _json(document)
+    ordered = [name for _, name in sorted(zip(folded, names))]
+    root = {
+        "attributes": root_attrs,
+        "zarr_format": 3,
+        "consolidated_metadata": {
+            "kind": "inline",
+            "must_understand": False,
+            "metadata": {name: documents[name] for name in ordered},
+        },
+        "node_type": "group",
+    }
+    files["zarr.json"] = _json(root)
+    return files
+
+
+def _json(document: dict) -> bytes:
+    return json.dumps(document, indent=2, allow_nan=True).encode()
