@@ -1,4 +1,4 @@
-"""Processed zarr stores: written complete or not at all, read back with plain xarray.
+"""Processed zarr stores: written complete or not at all, readable with plain xarray.
 
 A store is written into a hidden temporary sibling (``.<name>.partial-<token>``)
 and renamed onto its final path only once everything, consolidated metadata
@@ -9,7 +9,8 @@ and are removed by the next write of the same store.
 Attributes netCDF cannot hold (nested dicts, lists of strings, booleans, None)
 are stored as JSON strings and named in the attribute ``surffin_json_attrs``;
 :func:`open_store` decodes them, so ``xr.open_zarr(store).to_netcdf(path)``
-works for every store and surffin still reads the values it wrote.
+works for every store and surffin still reads the values it wrote. :func:`load_store` loads a
+store whole, by :mod:`surffin.io.zarrread` (without zarr-python's overhead) where it can.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import zarr
 
 from surffin._version import __version__
 from surffin.errors import StoreError
+from surffin.io.zarrread import read_store
 from surffin.io.zarrwrite import encode_store
 from surffin.paper import CITATION
 
@@ -40,6 +42,7 @@ __all__ = [
     "JSON_ATTRS",
     "write_store",
     "open_store",
+    "load_store",
     "StoreCache",
     "provenance",
     "clean_leftovers",
@@ -282,6 +285,22 @@ def write_store(
     return path
 
 
+def _check_exists(path: Path) -> None:
+    if not (path / "zarr.json").is_file():
+        raise StoreError(f"{path}: no zarr store here (missing {path / 'zarr.json'}); run the stage that makes it")
+
+
+def _checked(ds: xr.Dataset, path: Path, stage: str | None) -> xr.Dataset:
+    """Return ``ds`` with its attributes decoded, checking that ``stage`` (if given) made it."""
+    ds.attrs = decode_attrs(ds.attrs)
+    for variable in ds.variables.values():
+        variable.attrs = decode_attrs(variable.attrs)
+    made_by = ds.attrs.get("surffin_stage")
+    if stage is not None and made_by != stage:
+        raise StoreError(f"{path}: expected a store made by stage {stage!r}, found one made by {made_by!r}")
+    return ds
+
+
 def open_store(path: str | os.PathLike, *, stage: str | None = None, chunks="auto") -> xr.Dataset:
     """Open a processed store lazily, checking that it is one.
 
@@ -300,19 +319,37 @@ def open_store(path: str | os.PathLike, *, stage: str | None = None, chunks="aut
         If nothing readable is there, or it was made by another stage.
     """
     path = Path(path)
-    if not (path / "zarr.json").is_file():
-        raise StoreError(f"{path}: no zarr store here (missing {path / 'zarr.json'}); run the stage that makes it")
+    _check_exists(path)
     try:
         ds = xr.open_zarr(path, consolidated=True, chunks={} if chunks == "auto" else chunks)
     except Exception as exc:  # zarr and xarray raise many types on damaged stores
         raise StoreError(f"{path}: cannot open as a zarr store: {exc}") from exc
-    ds.attrs = decode_attrs(ds.attrs)
-    for variable in ds.variables.values():
-        variable.attrs = decode_attrs(variable.attrs)
-    made_by = ds.attrs.get("surffin_stage")
-    if stage is not None and made_by != stage:
-        raise StoreError(f"{path}: expected a store made by stage {stage!r}, found one made by {made_by!r}")
-    return ds
+    return _checked(ds, path, stage)
+
+
+def load_store(path: str | os.PathLike, *, stage: str | None = None) -> xr.Dataset:
+    """Load a processed store into memory, checking that it is one, as ``open_store(path, chunks=None).load()``.
+
+    The store is read by :func:`surffin.io.zarrread.read_store`, several times faster than through
+    zarr-python; one that reader declines is loaded through xarray. Either way the Dataset is the same
+    (its ``.encoding`` aside, which surffin does not use), its arrays numpy arrays of its own.
+
+    Parameters
+    ----------
+    path : path-like
+        The store's folder.
+    stage : str, optional
+        When given, the store must have been written by this stage.
+
+    Raises
+    ------
+    StoreError
+        If nothing readable is there, or it was made by another stage.
+    """
+    path = Path(path)
+    _check_exists(path)
+    ds = read_store(path)
+    return open_store(path, stage=stage, chunks=None).load() if ds is None else _checked(ds, path, stage)
 
 
 def _identity(path: Path) -> tuple | None:
@@ -363,8 +400,8 @@ class StoreCache:
             self._kept.move_to_end(key)
         return _copy(ds)
 
-    def keep(self, path: str | os.PathLike, ds: xr.Dataset | None = None) -> xr.Dataset:
-        """Load the store at ``path`` (``ds``: as :func:`open_store` opened it) and keep it.
+    def keep(self, path: str | os.PathLike) -> xr.Dataset:
+        """Load the store at ``path`` by :func:`load_store` and keep it.
 
         Returns
         -------
@@ -373,7 +410,7 @@ class StoreCache:
         """
         path = Path(path).resolve()
         identity = _identity(path)
-        ds = (open_store(path, chunks=None) if ds is None else ds).load()
+        ds = load_store(path)
         for variable in ds.variables.values():
             if isinstance(variable.data, np.ndarray):
                 variable.data.flags.writeable = False
