@@ -21,6 +21,7 @@ import numpy as np
 from surffin.grid import Roi
 from surffin.io.files import write_json
 from surffin.io.store import DEFAULT_CHUNKS, StoreCache, open_store, provenance, write_store
+from surffin.io.zarrread import store_sizes
 from surffin.method.stages import roughness_stage
 from surffin.pipeline.jobs import dask_scheduler, logging_to
 from surffin.pipeline.table import STAGES, stage_of
@@ -98,18 +99,26 @@ def _open_inputs(stores: Mapping[str, str | os.PathLike], chunks: Mapping[str, i
     An item no larger than one chunk is one task per array, which dask neither parallelises nor
     bounds in memory, and its graphs cost about a tenth of the chain's CPU (docs/performance.md);
     a larger one keeps its chunks, so that the job's memory follows the chunks, not the item. The
-    calibration covers the whole sensor, not the item's crop, and does not decide. Stores loaded
-    are kept for the process's next jobs (:data:`_LOADED`).
+    calibration covers the whole sensor, not the item's crop, and does not decide: the item's size is
+    read from its stores' metadata before any is loaded. Stores loaded (by
+    :func:`~surffin.io.store.load_store`) are kept for the process's next jobs (:data:`_LOADED`).
     """
     limits = {**DEFAULT_CHUNKS, **(chunks or {})}
     kept = {name: _LOADED.get(path) for name, path in stores.items()}
-    opened = {
-        name: open_store(path, chunks=None) if kept[name] is None else kept[name] for name, path in stores.items()
-    }
-    items = [ds for name, ds in opened.items() if name != "calibration"]
-    if all(ds.sizes.get(dim, 1) <= limits[dim] for ds in items for dim in ("y", "x")):
-        return {name: _LOADED.keep(stores[name], ds) if kept[name] is None else ds for name, ds in opened.items()}
+    sizes = [
+        _sizes(path) if kept[name] is None else kept[name].sizes
+        for name, path in stores.items()
+        if name != "calibration"
+    ]
+    if all(size.get(dim, 1) <= limits[dim] for size in sizes for dim in ("y", "x")):
+        return {name: _LOADED.keep(path) if kept[name] is None else kept[name] for name, path in stores.items()}
     return {name: open_store(path) for name, path in stores.items()}
+
+
+def _sizes(path: str | os.PathLike) -> Mapping[str, int]:
+    """Return the dimension sizes of the store at ``path``: from its metadata, or as xarray opens it."""
+    sizes = store_sizes(path)
+    return open_store(path, chunks=None).sizes if sizes is None else sizes
 
 
 def run_stage(
