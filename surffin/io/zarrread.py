@@ -162,9 +162,9 @@ def _dataset(variables: dict[str, xr.Variable], attrs: dict) -> xr.Dataset:
         coord_names.update(attrs.pop("coordinates").split())
     coords = {name: var for name, var in variables.items() if name in coord_names or var.dims == (name,)}
     data_vars = {name: var for name, var in variables.items() if name not in coords}
-    ds = xr.Dataset(data_vars, coords=xr.Coordinates(coords, indexes={}), attrs=attrs)
-    to_index = {name: coord.variable for name, coord in ds.coords.items() if coord.dims == (name,)}
-    return ds.assign_coords(xr.Coordinates(to_index))
+    # xarray makes the Dataset without indexes, then assigns the dimension coordinates with their
+    # default indexes; making them at once gives the same Dataset in half the time.
+    return xr.Dataset(data_vars, coords=xr.Coordinates(coords), attrs=attrs)
 
 
 def _dims(meta: dict) -> tuple:
