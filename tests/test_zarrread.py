@@ -163,6 +163,17 @@ def test_load_store_fails_as_open_store_does(tmp_path):
     assert load_store(path, stage="test").attrs["surffin_parameters"]["nested"] == {"a": [1, 2], "b": None, "c": True}
 
 
+def test_a_damaged_chunk_fails_as_through_xarray(tmp_path):
+    path = write_store(every_kind(), tmp_path / "s.zarr")
+    chunk = path / "dense" / "c" / "0" / "0"
+    chunk.write_bytes(chunk.read_bytes()[:-8])
+    assert read_store(path) is None
+    with pytest.raises(Exception) as through_xarray:
+        open_store(path, chunks=None).load()
+    with pytest.raises(through_xarray.type):
+        load_store(path)
+
+
 def test_store_cache_keeps_what_load_store_reads(tmp_path):
     path = write_store(every_kind(), tmp_path / "s.zarr", chunks={"y": 3, "x": 4})
     kept = StoreCache(max_bytes=10**7).keep(path)

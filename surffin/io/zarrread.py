@@ -152,7 +152,7 @@ def _variable_attrs(meta: dict, dtype: np.dtype) -> dict:
 
 
 def _dataset(variables: dict[str, xr.Variable], attrs: dict) -> xr.Dataset:
-    """Assemble the Dataset as xarray's store backend does from decoded variables."""
+    """Assemble the Dataset xarray's store backend makes of these decoded variables."""
     coord_names = set()
     for variable in variables.values():
         names = variable.attrs.pop("coordinates", None)
@@ -236,7 +236,7 @@ def read_store(path: str | os.PathLike) -> xr.Dataset | None:
         for name, meta in group["consolidated_metadata"]["metadata"].items():
             attrs = _variable_attrs(meta, _DTYPES[meta["data_type"]])
             variables[name] = xr.Variable(_dims(meta), _read_array(root / name, meta), attrs)
-    except (_Unsupported, KeyError, TypeError, AttributeError):
+        attrs = {key: value for key, value in group.get("attributes", {}).items() if not key.lower().startswith("_nc")}
+        return _dataset(variables, attrs)
+    except (_Unsupported, KeyError, TypeError, AttributeError, ValueError):  # damaged too: xarray says how
         return None
-    attrs = {key: value for key, value in group.get("attributes", {}).items() if not key.lower().startswith("_nc")}
-    return _dataset(variables, attrs)
