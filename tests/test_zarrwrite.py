@@ -58,6 +58,7 @@ def every_kind() -> xr.Dataset:
             "big": (("y", "x"), rng.integers(0, 1 << 40, shape[1:])),
             "scalar": ((), 2.5, {"nan": np.nan}),
             "flag": ((), np.int64(3)),
+            "note": ((), np.array("no views", dtype=object)),
             "names": ("view", np.array(["é-side", ""], dtype=object)),
         },
         coords={

@@ -80,7 +80,7 @@ def _chunks(name: str, data: np.ndarray, shape: tuple[int, ...], fill) -> dict[s
     files = {}
     counts = [math.ceil(size / step) for size, step in zip(data.shape, shape)]
     for index in itertools.product(*(range(count) for count in counts)):
-        part = data[tuple(slice(i * step, (i + 1) * step) for i, step in zip(index, shape))]
+        part = data[tuple(slice(i * step, (i + 1) * step) for i, step in zip(index, shape))] if data.ndim else data
         if part.shape != shape:
             padded = np.full(shape, fill, dtype=data.dtype)
             padded[tuple(slice(0, size) for size in part.shape)] = part
