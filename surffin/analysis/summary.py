@@ -11,7 +11,7 @@ import xarray as xr
 
 from surffin.grid import Roi
 from surffin.io.campaign import read_truth
-from surffin.io.store import open_store
+from surffin.io.store import load_store
 from surffin.method.classify import class_fractions, score
 from surffin.method.features import select_roi
 
@@ -33,12 +33,12 @@ def feature_statistics(ds: xr.Dataset) -> dict:
 
 
 def features_region(spec: Mapping) -> xr.Dataset:
-    """Open the features store of ``{"store", "roi"}``, lazily, cut to its roi when it has one.
+    """Load the features store of ``{"store", "roi"}``, cut to its roi when it has one.
 
-    Opened without dask: its variables are read whole or cut, and one store's worth of dask
-    chunking and graph costs more than reading it.
+    Loaded whole (:func:`~surffin.io.store.load_store`): an item's features are a few MB, read in a
+    few ms, and one store's worth of dask chunking and graph costs more than reading it.
     """
-    ds = open_store(spec["store"], stage="features", chunks=None)
+    ds = load_store(spec["store"], stage="features")
     roi = Roi.from_mapping(spec["roi"])
     return ds if roi is None else select_roi(ds, roi)
 
@@ -64,10 +64,10 @@ def summarise(
     for name, spec in features.items():
         summary["items"][name] = {
             "region": "image" if spec["roi"] is None else "roi",
-            **feature_statistics(features_region(spec).compute()),
+            **feature_statistics(features_region(spec)),
         }
     for name, path in labels.items():
-        ds = open_store(path, stage="labels").compute()
+        ds = load_store(path, stage="labels")
         classes = ds["label"].attrs["flag_meanings"].split()
         scene = {"class_fractions": {v: class_fractions(ds[v], classes) for v in ("label", "label_filtered")}}
         if name in truth:

@@ -20,7 +20,7 @@ import numpy as np
 
 from surffin.grid import Roi
 from surffin.io.files import write_json
-from surffin.io.store import DEFAULT_CHUNKS, StoreCache, open_store, provenance, write_store
+from surffin.io.store import DEFAULT_CHUNKS, StoreCache, load_store, open_store, provenance, write_store
 from surffin.io.zarrread import store_sizes
 from surffin.method.stages import roughness_stage
 from surffin.pipeline.jobs import dask_scheduler, logging_to
@@ -229,7 +229,7 @@ def run_training(
     with logging_to(log_path):
         items = {
             name: (
-                open_store(spec["store"], stage="features", chunks=None),
+                load_store(spec["store"], stage="features"),
                 spec["class"],
                 Roi.from_mapping(spec["roi"]),
             )

@@ -983,7 +983,7 @@ def write_figures(
     ValueError
         An unknown kind or input, or a kind whose inputs are not given.
     """
-    from surffin.io.store import open_store
+    from surffin.io.store import load_store
 
     if unknown := set(inputs) - set(FIGURE_INPUTS):
         raise ValueError(f"unknown figure inputs {sorted(unknown)}; known: {list(FIGURE_INPUTS)}")
@@ -994,10 +994,9 @@ def write_figures(
         missing = [name for name in FIGURE_KINDS[kind] if given[name] is None]
         if missing:
             raise ValueError(f"figure {kind!r} needs {missing}")
-    # Without dask: the figures read small stores or parts, and its tasks cost more than the reads.
-    opened = {
-        name: open_store(path, chunks=None) for name, path in given.items() if path is not None and name != "summary"
-    }
+    # Loaded whole, without dask: the figures read small stores or most of them, and dask's tasks cost
+    # more than the reads.
+    opened = {name: load_store(path) for name, path in given.items() if path is not None and name != "summary"}
     if given["summary"] is not None:
         opened["summary"] = json.loads(Path(given["summary"]).read_text())
     scene = opened["labels"].attrs.get("item") if "labels" in opened else None
