@@ -16,10 +16,12 @@ store whole, by :mod:`surffin.io.zarrread` (without zarr-python's overhead) wher
 from __future__ import annotations
 
 import copy
+import functools
 import json
 import numbers
 import os
 import shutil
+import tempfile
 import threading
 import uuid
 import warnings
@@ -34,7 +36,7 @@ import zarr
 from surffin._version import __version__
 from surffin.errors import StoreError
 from surffin.io.zarrread import read_store
-from surffin.io.zarrwrite import encode_store
+from surffin.io.zarrwrite import encode_store, probe
 from surffin.paper import CITATION
 
 __all__ = [
@@ -43,6 +45,7 @@ __all__ = [
     "write_store",
     "open_store",
     "load_store",
+    "own_files",
     "StoreCache",
     "provenance",
     "clean_leftovers",
@@ -219,6 +222,50 @@ def _to_zarr(ds: xr.Dataset, target, encoding: Mapping, compute: bool):
         return ds.to_zarr(target, mode="w-", zarr_format=3, consolidated=True, encoding=encoding, compute=compute)
 
 
+def _same(mine: xr.Dataset, theirs: xr.Dataset) -> bool:
+    """Tell whether two loaded Datasets are the same, order, dtypes and attribute types included."""
+    pairs = [(mine.attrs, theirs.attrs)] + [(mine[n].attrs, var.attrs) for n, var in theirs.variables.items()]
+    return (
+        mine.identical(theirs)
+        and list(mine.variables) == list(theirs.variables)
+        and list(mine.coords) == list(theirs.coords)
+        and all(mine[name].dtype == var.dtype for name, var in theirs.variables.items())
+        and all(repr(a) == repr(b) for a, b in pairs)
+    )
+
+
+@functools.cache
+def own_files() -> bool:
+    """Tell whether surffin's own writer and reader of store files agree with this xarray and zarr-python.
+
+    :mod:`surffin.io.zarrwrite` and :mod:`surffin.io.zarrread` write and read the files as some
+    versions of xarray and zarr-python do, not every one. Checked once per process on
+    :func:`~surffin.io.zarrwrite.probe`: the files ``to_zarr`` writes of it, byte for byte, and the
+    Dataset xarray loads of them. When either differs, every store is written and loaded by
+    xarray and zarr-python.
+    """
+    ds = _prepared(probe())
+    chunking = {"y": 3, "x": 4}
+    memory: dict = {}
+    _to_zarr(ds, zarr.storage.MemoryStore(memory), _encoding(ds, chunking), compute=True)
+    files = {key: buffer.to_bytes() for key, buffer in memory.items()}
+    if encode_store(ds, chunking) != files:
+        return False
+    with tempfile.TemporaryDirectory() as folder:
+        _write_files(files, Path(folder))
+        mine = read_store(folder)
+        return mine is not None and _same(mine, xr.open_zarr(folder, consolidated=True, chunks=None).load())
+
+
+def _prepared(ds: xr.Dataset) -> xr.Dataset:
+    """Return ``ds`` as the writers take it: its encoding dropped, strings as objects, attributes encoded."""
+    ds = _strings_as_objects(ds.drop_encoding()).copy(deep=False)
+    ds.attrs = encode_attrs(ds.attrs)
+    for variable in ds.variables.values():
+        variable.attrs = encode_attrs(variable.attrs)
+    return ds
+
+
 def write_store(
     ds: xr.Dataset, path: str | os.PathLike, *, chunks: Mapping[str, int] | None = None, scheduler=None
 ) -> Path:
@@ -250,21 +297,17 @@ def write_store(
     # A Dataset in memory is written as it is, in the stores' chunks: through dask it would cost a
     # graph per write for nothing to compute.
     in_memory = all(var.chunks is None for var in ds.variables.values())
-    ds = ds.drop_encoding() if in_memory else ds.drop_encoding().chunk(chunking)
-    ds = _strings_as_objects(ds).copy(deep=False)
-    ds.attrs = encode_attrs(ds.attrs)
-    for variable in ds.variables.values():
-        variable.attrs = encode_attrs(variable.attrs)
+    ds = _prepared(ds if in_memory else ds.drop_encoding().chunk(chunking))
     partial = path.parent / f".{path.name}{_PARTIAL}{uuid.uuid4().hex[:12]}"
     # A Dataset in memory is encoded into memory at once and its files written in one go: by
-    # zarrwrite.encode_store, which writes the files to_zarr would at a tenth of its CPU, or when it
-    # cannot, by to_zarr into a memory store (through zarr's file store, a thread hop per document and
+    # zarrwrite.encode_store, which writes the files to_zarr would at a tenth of its CPU (own_files),
+    # or when it cannot, by to_zarr into a memory store (through zarr's file store, a thread hop per document and
     # chunk, an item's stores took 1.15-1.65x as long, and a delayed write's compute imported
     # dask.distributed to look for a client). Dask arrays are written chunk by chunk to the files:
     # memory follows the chunks, any scheduler (a cluster's) can.
     try:
         if in_memory:
-            encoded = encode_store(ds, chunking)
+            encoded = encode_store(ds, chunking) if own_files() else None
             if encoded is None:
                 memory: dict = {}
                 _to_zarr(ds, zarr.storage.MemoryStore(memory), _encoding(ds, chunking), compute=True)
@@ -331,7 +374,8 @@ def load_store(path: str | os.PathLike, *, stage: str | None = None) -> xr.Datas
     """Load a processed store into memory, checking that it is one, as ``open_store(path, chunks=None).load()``.
 
     The store is read by :func:`surffin.io.zarrread.read_store`, several times faster than through
-    zarr-python; one that reader declines is loaded through xarray. Either way the Dataset is the same
+    zarr-python (where it reads as xarray does: :func:`own_files`); one that reader declines is
+    loaded through xarray. Either way the Dataset is the same
     (its ``.encoding`` aside, which surffin does not use), its arrays numpy arrays of its own.
 
     Parameters
@@ -348,7 +392,7 @@ def load_store(path: str | os.PathLike, *, stage: str | None = None) -> xr.Datas
     """
     path = Path(path)
     _check_exists(path)
-    ds = read_store(path)
+    ds = read_store(path) if own_files() else None
     return open_store(path, stage=stage, chunks=None).load() if ds is None else _checked(ds, path, stage)
 
 

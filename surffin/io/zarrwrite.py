@@ -7,8 +7,9 @@ bytes of the files; a run writes ~250 stores (``python benchmarks/bench_store.py
 and boolean arrays in memory, variable-length strings, the floats uncompressed and the rest
 compressed with zstd, regular chunks, consolidated metadata, xarray's ``_FillValue`` and
 ``coordinates`` attributes. For anything else it returns None and the caller writes with
-``to_zarr``. The tests compare the two writers' files on every kind of store a run writes, so a
-version of zarr or xarray that writes otherwise is caught there.
+``to_zarr``. Those are the files of xarray 2026.1 to 2026.x with zarr 3.1.6; other versions may write
+otherwise (zarr 3.1.2 wrote booleans as int8): :func:`surffin.io.store.write_store` uses this writer
+only where it writes :func:`probe` as ``to_zarr`` does.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import numpy as np
 import xarray as xr
 from numcodecs import VLenUTF8, Zstd
 
-__all__ = ["encode_store"]
+__all__ = ["encode_store", "probe"]
 
 _ZSTD = {"name": "zstd", "configuration": {"level": 0, "checksum": False}}
 _LITTLE = {"name": "bytes", "configuration": {"endian": "little"}}
@@ -193,3 +194,44 @@ def encode_store(ds: xr.Dataset, chunking: Mapping[str, int]) -> dict[str, bytes
 
 def _json(document: dict) -> bytes:
     return json.dumps(document, indent=2, allow_nan=True).encode()
+
+
+def probe() -> xr.Dataset:
+    """Return a small Dataset holding every kind of variable, value and attribute :func:`encode_store` writes.
+
+    Numeric and boolean arrays of each dtype (with NaN, a chunk of NaN and arrays of fill values only),
+    strings (empty, non-ASCII, a 0-d one), 0-d numbers, an index, a non-dimension coordinate and
+    one no variable names, attributes of numpy scalars and arrays; written with chunks of 3 x 4 it
+    has edge chunks. Its strings are object arrays and its attributes JSON-ready, as ``encode_store``
+    takes them.
+    """
+    rng = np.random.default_rng(3)
+    shape = (2, 7, 9)
+    noisy = rng.normal(size=shape).astype(np.float32)
+    noisy[0, :3, :4] = np.nan
+    return xr.Dataset(
+        {
+            "reflectance": (("view", "y", "x"), noisy, {"units": "1", "window": np.int64(15), "nan": math.nan}),
+            "fit": (("y", "x"), rng.normal(size=shape[1:]), {"scale": np.float32(0.5), "edges": np.arange(3.0)}),
+            "empty": (("y", "x"), np.full(shape[1:], np.nan)),
+            "valid": (("view", "y", "x"), rng.random(shape) > 0.3),
+            "never": (("y", "x"), np.zeros(shape[1:], dtype=bool)),
+            "status": (("y", "x"), rng.integers(-3, 3, shape[1:]).astype(np.int8)),
+            "count": (("y", "x"), rng.integers(0, 200, shape[1:]).astype(np.uint8)),
+            "label": (("y", "x"), rng.integers(-1, 4, shape[1:]).astype(np.int16)),
+            "index": (("y", "x"), rng.integers(0, 1 << 20, shape[1:]).astype(np.int32)),
+            "big": (("y", "x"), rng.integers(0, 1 << 40, shape[1:])),
+            "scalar": ((), 2.5),
+            "flag": ((), np.int64(3)),
+            "note": ((), np.array("no views", dtype=object)),
+            "names": ("view", np.array(["é-side", ""], dtype=object)),
+        },
+        coords={
+            "view": np.array(["v00", "v01"], dtype=object),
+            "y": np.arange(10, 17),
+            "x": np.arange(20, 29),
+            "pose": ("view", np.array([1.0, np.nan])),
+            "lonely": ("axis", np.array(["a", "b", "c"], dtype=object)),
+        },
+        attrs={"ratio": 0.25, "name": "S1-01", "sizes": [1, 2]},
+    )
