@@ -300,11 +300,11 @@ def write_store(
     ds = _prepared(ds if in_memory else ds.drop_encoding().chunk(chunking))
     partial = path.parent / f".{path.name}{_PARTIAL}{uuid.uuid4().hex[:12]}"
     # A Dataset in memory is encoded into memory at once and its files written in one go: by
-    # zarrwrite.encode_store, which writes the files to_zarr would at a tenth of its CPU (own_files),
-    # or when it cannot, by to_zarr into a memory store (through zarr's file store, a thread hop per document and
-    # chunk, an item's stores took 1.15-1.65x as long, and a delayed write's compute imported
-    # dask.distributed to look for a client). Dask arrays are written chunk by chunk to the files:
-    # memory follows the chunks, any scheduler (a cluster's) can.
+    # zarrwrite.encode_store, the files to_zarr would write at a tenth of its CPU (where they are
+    # the same: own_files), else by to_zarr into a memory store (into zarr's file store, a thread
+    # hop per document and chunk, an item's stores took 1.15-1.65x as long, and a delayed write's
+    # compute imported dask.distributed to look for a client). Dask arrays are written chunk by
+    # chunk to the files: memory follows the chunks, any scheduler (a cluster's) can.
     try:
         if in_memory:
             encoded = encode_store(ds, chunking) if own_files() else None
@@ -374,9 +374,9 @@ def load_store(path: str | os.PathLike, *, stage: str | None = None) -> xr.Datas
     """Load a processed store into memory, checking that it is one, as ``open_store(path, chunks=None).load()``.
 
     The store is read by :func:`surffin.io.zarrread.read_store`, several times faster than through
-    zarr-python (where it reads as xarray does: :func:`own_files`); one that reader declines is
-    loaded through xarray. Either way the Dataset is the same
-    (its ``.encoding`` aside, which surffin does not use), its arrays numpy arrays of its own.
+    zarr-python, where that reader reads as xarray does (:func:`own_files`); a store it declines is
+    loaded through xarray. Either way the Dataset is the same (its ``.encoding`` aside, which
+    surffin does not use), its arrays numpy arrays of its own.
 
     Parameters
     ----------

@@ -7,9 +7,9 @@ bytes of the files; a run writes ~250 stores (``python benchmarks/bench_store.py
 and boolean arrays in memory, variable-length strings, the floats uncompressed and the rest
 compressed with zstd, regular chunks, consolidated metadata, xarray's ``_FillValue`` and
 ``coordinates`` attributes. For anything else it returns None and the caller writes with
-``to_zarr``. Those are the files of xarray 2026.1 to 2026.x with zarr 3.1.6; other versions may write
-otherwise (zarr 3.1.2 wrote booleans as int8): :func:`surffin.io.store.write_store` uses this writer
-only where it writes :func:`probe` as ``to_zarr`` does.
+``to_zarr``. Those are the files xarray 2026.9 and zarr 3.1.6 write; other versions may write
+otherwise (xarray 2026.1 with zarr 3.1.2: booleans as int8), so :func:`surffin.io.store.write_store`
+uses this writer only where it writes :func:`probe` as ``to_zarr`` does.
 """
 
 from __future__ import annotations
