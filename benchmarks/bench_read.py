@@ -5,8 +5,8 @@ Run by hand: ``python benchmarks/bench_read.py STORE [STORE ...] [--repeat 15]``
 by ``open_store(path, chunks=None).load()`` (what every job did before), the two alternating so that
 the machine's load (it is shared) falls on both alike; one warm-up round is not counted. Prints per
 store its size in memory, the median milliseconds of each, the ratio reference / ``load_store`` and
-whether the two Datasets are identical: ``Dataset.identical``, the variables, coordinates and indexes
-in the same order with the same dtypes, the values bit for bit and the attributes with the same types.
+whether the two Datasets are the same (:func:`~surffin.io.store.same_dataset`: the variables,
+coordinates and indexes in the same order with the same dtypes, values bit for bit, attributes' types).
 """
 
 from __future__ import annotations
@@ -19,38 +19,12 @@ from pathlib import Path
 
 import xarray as xr
 
-from surffin.io.store import load_store, open_store
+from surffin.io.store import load_store, open_store, same_dataset
 
 
 def reference(path: Path) -> xr.Dataset:
     """Load a store as surffin did before ``load_store``: through xarray and zarr-python."""
     return open_store(path, chunks=None).load()
-
-
-def spelled(value) -> str:
-    """Return a value's ``repr`` with the type of every part, to compare attributes exactly."""
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{key!r}: {spelled(item)}" for key, item in value.items()) + "}"
-    if isinstance(value, list | tuple):
-        return f"{type(value).__name__}(" + ", ".join(spelled(item) for item in value) + ")"
-    return f"{type(value).__name__}:{value!r}"
-
-
-def identical(a: xr.Dataset, b: xr.Dataset) -> bool:
-    """Return whether two loaded stores are the same Dataset, as the module docstring says."""
-    return (
-        a.identical(b)
-        and all(list(getattr(a, names)) == list(getattr(b, names)) for names in ("variables", "coords", "xindexes"))
-        and spelled(a.attrs) == spelled(b.attrs)
-        and all(
-            type(var) is type(b.variables[name])
-            and var.dtype == b.variables[name].dtype
-            and spelled(var.attrs) == spelled(b.variables[name].attrs)
-            and (var.dtype.kind not in "fiub" or var.values.tobytes() == b.variables[name].values.tobytes())
-            for name, var in a.variables.items()
-        )
-        and all(a.xindexes[name].coord_dtype == index.coord_dtype for name, index in b.xindexes.items())
-    )
 
 
 def main():
@@ -74,7 +48,7 @@ def main():
     for path, (new, old) in times.items():
         ds = load_store(path)
         new, old = statistics.median(new) * 1e3, statistics.median(old) * 1e3
-        same = "yes" if identical(ds, reference(path)) else "NO"
+        same = "yes" if same_dataset(ds, reference(path)) else "NO"
         print(f"{names[path]:>{width}s}{ds.nbytes / 1e6:7.1f}{new:12.2f}{old:9.2f}{old / new:8.2f}{same:>11s}")
 
 

@@ -9,7 +9,7 @@ import xarray as xr
 import zarr
 
 from surffin.errors import StoreError
-from surffin.io.store import StoreCache, load_store, open_store, own_files, provenance, write_store
+from surffin.io.store import StoreCache, load_store, open_store, own_files, provenance, same_dataset, write_store
 from surffin.io.zarrread import read_store, store_sizes
 
 
@@ -194,3 +194,19 @@ def test_every_store_of_a_run_reads_as_xarray_loads_it(tiny_run):
     assert len(stores) > 10
     for path in stores:
         assert_reads_as_xarray(path)
+
+
+def test_same_dataset_tells_what_identical_does_not():
+    ds = xr.Dataset({"a": ("x", np.arange(3.0), {"w": 1}), "b": ("x", np.arange(3))}, coords={"x": [1, 2, 3]})
+    assert same_dataset(ds, ds.copy(deep=True))
+    others = {
+        "order": ds[["b", "a"]],
+        "dtype": ds.assign(b=ds["b"].astype("int32")),
+        "attribute type": ds.assign(a=ds["a"].assign_attrs(w=1.0)),
+        "NaN payload": ds.assign(a=("x", np.array([1.0, 2.0, np.nan]))).copy(deep=True),
+    }
+    nan = others["NaN payload"].copy(deep=True)
+    nan["a"].values.view(np.uint64)[2] ^= 1  # another NaN, which Dataset.identical takes as equal
+    assert others["order"].identical(ds) and nan.identical(others["NaN payload"])
+    assert not any(same_dataset(other, ds) for key, other in others.items() if key != "NaN payload")
+    assert not same_dataset(nan, others["NaN payload"])

@@ -46,6 +46,7 @@ __all__ = [
     "open_store",
     "load_store",
     "own_files",
+    "same_dataset",
     "StoreCache",
     "provenance",
     "clean_leftovers",
@@ -222,15 +223,33 @@ def _to_zarr(ds: xr.Dataset, target, encoding: Mapping, compute: bool):
         return ds.to_zarr(target, mode="w-", zarr_format=3, consolidated=True, encoding=encoding, compute=compute)
 
 
-def _same(mine: xr.Dataset, theirs: xr.Dataset) -> bool:
-    """Tell whether two loaded Datasets are the same, order, dtypes and attribute types included."""
-    pairs = [(mine.attrs, theirs.attrs)] + [(mine[n].attrs, var.attrs) for n, var in theirs.variables.items()]
+def _spelled(value) -> str:
+    """Return a value's ``repr`` with the type of every part, to compare attributes exactly."""
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{key!r}: {_spelled(item)}" for key, item in value.items()) + "}"
+    if isinstance(value, list | tuple):
+        return f"{type(value).__name__}(" + ", ".join(_spelled(item) for item in value) + ")"
+    return f"{type(value).__name__}:{value!r}"
+
+
+def same_dataset(a: xr.Dataset, b: xr.Dataset) -> bool:
+    """Tell whether two Datasets in memory are the same, as two loads of one store must be.
+
+    ``Dataset.identical``, and the variables, coordinates and indexes in the same order with the
+    same dtypes, the numbers and booleans bit for bit, the attributes with the same types.
+    """
     return (
-        mine.identical(theirs)
-        and list(mine.variables) == list(theirs.variables)
-        and list(mine.coords) == list(theirs.coords)
-        and all(mine[name].dtype == var.dtype for name, var in theirs.variables.items())
-        and all(repr(a) == repr(b) for a, b in pairs)
+        a.identical(b)
+        and all(list(getattr(a, names)) == list(getattr(b, names)) for names in ("variables", "coords", "xindexes"))
+        and _spelled(a.attrs) == _spelled(b.attrs)
+        and all(
+            type(var) is type(b.variables[name])
+            and var.dtype == b.variables[name].dtype
+            and _spelled(var.attrs) == _spelled(b.variables[name].attrs)
+            and (var.dtype.kind not in "fiub" or var.values.tobytes() == b.variables[name].values.tobytes())
+            for name, var in a.variables.items()
+        )
+        and all(a.xindexes[name].coord_dtype == index.coord_dtype for name, index in b.xindexes.items())
     )
 
 
@@ -254,7 +273,7 @@ def own_files() -> bool:
     with tempfile.TemporaryDirectory() as folder:
         _write_files(files, Path(folder))
         mine = read_store(folder)
-        return mine is not None and _same(mine, xr.open_zarr(folder, consolidated=True, chunks=None).load())
+        return mine is not None and same_dataset(mine, xr.open_zarr(folder, consolidated=True, chunks=None).load())
 
 
 def _prepared(ds: xr.Dataset) -> xr.Dataset:
