@@ -14,14 +14,19 @@ from surffin.io.store import encode_attrs, load_store, open_store, own_files, wr
 from surffin.io.zarrwrite import encode_store, probe
 
 
-def reference(ds: xr.Dataset, chunking: dict) -> dict[str, bytes]:
-    """The files ``to_zarr`` writes: floats uncompressed, the rest with zarr's default, chunks per ``chunking``."""
+def stores_encoding(ds: xr.Dataset, chunking: dict) -> dict[str, dict]:
+    """The stores' encoding: floats uncompressed, the rest with zarr's default, chunks per ``chunking``."""
     encoding = {}
     for name, variable in ds.variables.items():
         encoding[name] = {"compressors": None} if variable.dtype.kind == "f" else {}
         if name not in ds.indexes:
             sizes = [min(chunking.get(dim, size), size) for dim, size in variable.sizes.items()]
             encoding[name]["chunks"] = tuple(sizes)
+    return encoding
+
+
+def reference(ds: xr.Dataset, encoding: dict) -> dict[str, bytes]:
+    """The files ``to_zarr`` writes of ``ds`` with ``encoding``."""
     memory = {}
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
@@ -54,8 +59,9 @@ same_files = pytest.mark.skipif(not own_files(), reason="this xarray and zarr wr
 @pytest.mark.parametrize("chunking", [{}, {"y": 3, "x": 4}, {"view": 1, "y": 7, "x": 5}])
 def test_files_as_to_zarr_writes_them(chunking):
     ds = prepared(every_kind())
-    ours = encode_store(ds, chunking)
-    assert ours == reference(ds, chunking)
+    encoding = stores_encoding(ds, chunking)
+    ours = encode_store(ds, encoding)
+    assert ours == reference(ds, encoding)
     # not vacuous: attributes xarray adds, a chunk of NaN and a variable of fill values left out
     assert b'"coordinates": "pose"' in ours["reflectance/zarr.json"] and b'"coordinates": "lonely"' in ours["zarr.json"]
     assert b'"_FillValue"' in ours["fit/zarr.json"] and not any(key.startswith(("empty/c", "never/c")) for key in ours)
@@ -66,7 +72,8 @@ def test_strings_as_numpy_strings():
     """Stores read back hold numpy's variable-width strings; a stage may pass them on."""
     ds = prepared(every_kind())
     ds = ds.assign(names=ds["names"].astype(np.dtypes.StringDType()))
-    assert encode_store(ds, {}) == reference(ds, {})
+    encoding = stores_encoding(ds, {})
+    assert encode_store(ds, encoding) == reference(ds, encoding)
 
 
 @pytest.mark.parametrize(
@@ -93,7 +100,16 @@ def test_strings_as_numpy_strings():
     ],
 )
 def test_anything_else_is_left_to_to_zarr(change):
-    assert encode_store(change(prepared(every_kind())), {}) is None
+    ds = change(prepared(every_kind()))
+    assert encode_store(ds, stores_encoding(ds, {})) is None
+
+
+def test_another_encoding_is_left_to_to_zarr():
+    ds = prepared(every_kind())
+    encoding = stores_encoding(ds, {})
+    assert encode_store(ds, encoding) is not None
+    for name, other in (("fit", {}), ("status", {"compressors": None}), ("count", {"filters": None})):
+        assert encode_store(ds, encoding | {name: other}) is None, name
 
 
 def test_store_written_with_a_fallback_variable_reads_back(tmp_path):
@@ -120,14 +136,15 @@ def test_every_store_of_a_run(tiny_run):
         chunking = {}
         for variable in opened.data_vars.values():
             chunking |= dict(zip(variable.dims, variable.encoding["chunks"]))
-        assert reference(prepared(opened.load()), chunking) == files, store
+        ds = prepared(opened.load())
+        assert reference(ds, stores_encoding(ds, chunking)) == files, store
 
 
 def test_own_files_are_used_only_where_they_agree(tmp_path, monkeypatch):
     """A writer that disagrees with to_zarr on the probe is not used, nor is the reader: zarr-python serves."""
     checked = surffin.io.store.own_files.__wrapped__
     assert checked() == own_files()
-    monkeypatch.setattr(surffin.io.store, "encode_store", lambda ds, chunking: {"zarr.json": b"{}"})
+    monkeypatch.setattr(surffin.io.store, "encode_store", lambda ds, encoding: {"zarr.json": b"{}"})
     assert not checked()
     monkeypatch.setattr(surffin.io.store, "own_files", lambda: False)
 

@@ -264,11 +264,11 @@ def own_files() -> bool:
     xarray and zarr-python.
     """
     ds = _prepared(probe())
-    chunking = {"y": 3, "x": 4}
+    encoding = _encoding(ds, {"y": 3, "x": 4})
     memory: dict = {}
-    _to_zarr(ds, zarr.storage.MemoryStore(memory), _encoding(ds, chunking), compute=True)
+    _to_zarr(ds, zarr.storage.MemoryStore(memory), encoding, compute=True)
     files = {key: buffer.to_bytes() for key, buffer in memory.items()}
-    if encode_store(ds, chunking) != files:
+    if encode_store(ds, encoding) != files:
         return False
     with tempfile.TemporaryDirectory() as folder:
         _write_files(files, Path(folder))
@@ -326,10 +326,11 @@ def write_store(
     # chunk to the files: memory follows the chunks, any scheduler (a cluster's) can.
     try:
         if in_memory:
-            encoded = encode_store(ds, chunking) if own_files() else None
+            encoding = _encoding(ds, chunking)
+            encoded = encode_store(ds, encoding) if own_files() else None
             if encoded is None:
                 memory: dict = {}
-                _to_zarr(ds, zarr.storage.MemoryStore(memory), _encoding(ds, chunking), compute=True)
+                _to_zarr(ds, zarr.storage.MemoryStore(memory), encoding, compute=True)
                 encoded = {key: buffer.to_bytes() for key, buffer in memory.items()}
             _write_files(encoded, partial)
         else:

@@ -30,9 +30,11 @@ __all__ = ["encode_store", "probe"]
 
 _ZSTD = {"name": "zstd", "configuration": {"level": 0, "checksum": False}}
 _LITTLE = {"name": "bytes", "configuration": {"endian": "little"}}
-#: zarr's chunks for an array given none (an index coordinate): the whole array up to this size.
+#: zarr's chunks for an array given none (e.g. an index coordinate): the whole array up to this size.
 _WHOLE_BYTES = 128 * 1024
 _NUMERIC = "fiub"
+_ZSTD_CODEC = Zstd(level=0, checksum=False)
+_VLEN_UTF8 = VLenUTF8()
 
 
 def _attribute(value):
@@ -51,7 +53,11 @@ def _strings(data: np.ndarray) -> bool:
 
 
 def _kind(data: np.ndarray) -> tuple[str, object, object, list] | None:
-    """Return an array's zarr data type, fill value (as stored and in JSON) and codecs; None if not written here."""
+    """Return an array's zarr data type, fill value (as stored and in JSON) and codecs; None if not written here.
+
+    The codecs are those ``to_zarr`` gives without compressors for floats, and zarr's default
+    compressor (zstd) for the rest: the stores' encoding.
+    """
     if _strings(data):
         return "string", "", "", [{"name": "vlen-utf8", "configuration": {}}, _ZSTD]
     if data.dtype.kind not in _NUMERIC or data.dtype.byteorder == ">" or data.dtype.kind == "f" and data.itemsize < 4:
@@ -71,9 +77,9 @@ def _empty(chunk: np.ndarray, fill) -> bool:
 
 def _chunk_bytes(chunk: np.ndarray) -> bytes:
     if chunk.dtype.kind in "OT":
-        return Zstd(level=0, checksum=False).encode(VLenUTF8().encode(chunk.astype(object)))
+        return _ZSTD_CODEC.encode(_VLEN_UTF8.encode(chunk.astype(object)))
     raw = chunk.astype(chunk.dtype.newbyteorder("<"), copy=False).tobytes()
-    return raw if chunk.dtype.kind == "f" else Zstd(level=0, checksum=False).encode(raw)
+    return raw if chunk.dtype.kind == "f" else _ZSTD_CODEC.encode(raw)
 
 
 def _chunks(name: str, data: np.ndarray, shape: tuple[int, ...], fill) -> dict[str, bytes]:
@@ -108,7 +114,7 @@ def _coordinates(ds: xr.Dataset) -> tuple[dict[str, str], str | None]:
     return per_variable, " ".join(orphans) or None
 
 
-def encode_store(ds: xr.Dataset, chunking: Mapping[str, int]) -> dict[str, bytes] | None:
+def encode_store(ds: xr.Dataset, encoding: Mapping[str, Mapping]) -> dict[str, bytes] | None:
     """Return the files of ``ds`` as a consolidated zarr v3 store (relative path -> bytes), as ``to_zarr`` writes them.
 
     Parameters
@@ -116,15 +122,16 @@ def encode_store(ds: xr.Dataset, chunking: Mapping[str, int]) -> dict[str, bytes
     ds : Dataset
         In memory, its encoding dropped, its strings as object arrays and its attributes JSON-ready, as
         :func:`surffin.io.store.write_store` hands it to ``to_zarr``.
-    chunking : mapping of str to int
-        Chunk size per dimension of the variables that are not indexes (-1 or absent: whole).
+    encoding : mapping of str to mapping
+        The ``to_zarr`` encoding of the variables: ``chunks`` (absent: whole), and ``compressors``
+        None for floats, absent for the rest.
 
     Returns
     -------
     dict or None
-        None when ``ds`` holds what this writer does not write (a dtype, a variable or attribute
-        named ``coordinates`` or ``_FillValue``, a large index, names equal but for case): write it
-        with ``to_zarr``.
+        None when ``ds`` holds or ``encoding`` asks what this writer does not write (a dtype, a
+        variable or attribute named ``coordinates`` or ``_FillValue``, a large array given no chunks,
+        names equal but for case, another compressor or encoding key): write it with ``to_zarr``.
     """
     names = list(ds.variables)
     if any(not isinstance(name, str) or "/" in name or " " in name for name in names):
@@ -142,18 +149,17 @@ def encode_store(ds: xr.Dataset, chunking: Mapping[str, int]) -> dict[str, bytes
     for name, variable in ds.variables.items():
         data = variable.values
         kind = _kind(data)
-        if kind is None or "_FillValue" in variable.attrs or "coordinates" in variable.attrs:
+        wanted = dict(encoding.get(name, {}))
+        chunked = "chunks" in wanted
+        shape = tuple(wanted.pop("chunks", data.shape))
+        # the stores' encoding: floats uncompressed, the rest with zarr's default compressor
+        if kind is None or wanted != ({"compressors": None} if data.dtype.kind == "f" else {}):
+            return None
+        if len(shape) != data.ndim or not chunked and data.nbytes > _WHOLE_BYTES:
+            return None
+        if "_FillValue" in variable.attrs or "coordinates" in variable.attrs:
             return None
         data_type, fill, json_fill, codecs = kind
-        if name in ds.indexes:
-            if data.nbytes > _WHOLE_BYTES:
-                return None
-            shape = data.shape
-        else:
-            shape = tuple(
-                size if chunking.get(dim, -1) == -1 else min(chunking[dim], size)
-                for dim, size in zip(variable.dims, data.shape)
-            )
         attrs = {key: _attribute(value) for key, value in variable.attrs.items()}
         if name in per_variable:
             attrs["coordinates"] = per_variable[name]
