@@ -758,6 +758,46 @@ def test_pixel_rules_hold_off_the_middle_row_and_on_invalid_pixels(tmp_path, syn
     np.testing.assert_array_equal(read_view(path, **sensor).valid, valid)
 
 
+@pytest.mark.parametrize("save", ["savez", "savez_compressed", "fortran"])
+@pytest.mark.parametrize("broken", [None, (0, 5), (5, 1)], ids=["sound", "first-row", "last-row"])
+def test_pixel_check_of_npz_members_stored_compressed_or_fortran(tmp_path, synthetic_view, sensor, save, broken):
+    """Stored members are tested in place, compressed ones loaded: the same verdict and message as read_view's."""
+    xyz, intensity, _ = synthetic_view
+    intensity = intensity.copy()
+    if broken is not None:
+        intensity[broken] = -3.0
+    arrays = {"xyz": xyz.astype(np.float32), "intensity": intensity}
+    if save == "fortran":
+        arrays = {name: np.asfortranarray(array) for name, array in arrays.items()}
+    path = tmp_path / "v.npz"
+    (np.savez_compressed if save == "savez_compressed" else np.savez)(path, **arrays)
+    check_view(path, **sensor)
+    if broken is None:
+        check_view_pixels(path, **sensor)
+        return
+    with pytest.raises(ViewFileError) as read:
+        read_view(path, **sensor)
+    with pytest.raises(ViewFileError) as checked:
+        check_view_pixels(path, **sensor)
+    assert str(checked.value) == str(read.value)
+    assert f"first at row {broken[0]}, column {broken[1]}: -3.0" in str(checked.value)
+
+
+def test_pixel_check_reads_only_the_intensity_and_middle_row_of_a_stored_npz(tmp_path, synthetic_view, sensor):
+    """A stored npz is tested on its bytes in place: a damaged xyz row off the middle passes the pixel check
+    (its checksum is not read), and read_view refuses the file."""
+    xyz, intensity, _ = synthetic_view
+    path = tmp_path / "v.npz"
+    write_view(path, xyz, intensity)
+    first_row = xyz[0].astype(np.float32).tobytes()
+    data = path.read_bytes()
+    assert data.count(first_row) == 1
+    path.write_bytes(data.replace(first_row, np.full_like(xyz[0], 0.25, dtype=np.float32).tobytes()))
+    check_view_pixels(path, **sensor)
+    with pytest.raises(ViewFileError, match=f"{path}.*CRC"):
+        read_view(path, **sensor)
+
+
 # --- writing ------------------------------------------------------------------------------------
 
 

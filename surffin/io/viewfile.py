@@ -29,6 +29,7 @@ import contextlib
 import io
 import json
 import math
+import struct
 import zipfile
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -97,6 +98,7 @@ _POSE_LAST_ROW_TOLERANCE = 1e-9
 _POSE_ROTATION_TOLERANCE = 1e-6
 _QUATERNION_NORM_TOLERANCE = 1e-3
 _NUMERIC_KINDS = "iuf"
+_LOCAL_HEADER = struct.Struct("<4s22xHH")  # a zip member's local header: signature, name and extra field lengths
 _PLY_HEADER_LIMIT = 1 << 16
 _PLY_NEWLINES = (b"\r\n", b"\n", b"\r")
 _PLY_FORMATS = {"ascii": "=", "binary_little_endian": "<", "binary_big_endian": ">"}
@@ -425,7 +427,12 @@ def check_view_pixels(
     Loads the pixel data for the rules :func:`read_view` applies (intensity on
     valid pixels, at least one valid pixel), at a fraction of its cost:
     when every intensity is finite and >= 0 and the middle row has a valid
-    pixel, the valid pixels are not computed. The structure is not checked
+    pixel, the valid pixels are not computed. An npz whose arrays are stored
+    uncompressed (``numpy.savez``) is tested first on its bytes mapped in place
+    (:func:`_mapped_npz`): the intensity and the middle row of xyz, without
+    reading the rest of xyz or the members' checksums (a damaged member is
+    refused when :func:`read_view` reads it); when that test cannot tell, the
+    file is loaded as :func:`read_view` loads it. The structure is not checked
     again. File reads, zlib and numpy release the GIL: files checked in
     threads at once take the cores there are.
 
@@ -440,6 +447,9 @@ def check_view_pixels(
         The pixels break the contract, or the file is unreadable.
     """
     path = Path(path)
+    mapped = _mapped_npz(path) if path.suffix == ".npz" else None
+    if mapped is not None and _pixel_rules_hold(*mapped):
+        return
     xyz, intensity = _load(path, _FORMS[path.suffix], width, height, _decoding(abcy16, ply_intensity))
     if not _pixel_rules_hold(xyz, intensity):
         _pixel_rules(path, xyz, intensity)
@@ -821,12 +831,17 @@ def _encode_pose(pose: np.ndarray) -> bytes:
 # --- npz -------------------------------------------------------------------------------------
 
 
+def _read_npy_header(stream) -> tuple[tuple[int, ...], bool, np.dtype]:
+    """Read an ``.npy`` header from ``stream``, left at the array's first byte: shape, Fortran order, dtype."""
+    version = np.lib.format.read_magic(stream)
+    read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+    return read_header(stream)
+
+
 def _npy_header(archive: zipfile.ZipFile, member: str) -> tuple[tuple[int, ...], np.dtype]:
     """Shape and dtype of one ``.npy`` member, from its header alone."""
     with archive.open(member) as stream:
-        version = np.lib.format.read_magic(stream)
-        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-        shape, _, dtype = read_header(stream)
+        shape, _, dtype = _read_npy_header(stream)
         header_size = stream.tell()
     if dtype.hasobject:
         return shape, dtype
@@ -872,6 +887,35 @@ def npz_headers(path: str | Path) -> dict[str, tuple[tuple[int, ...], np.dtype]]
                 f"expected plain numeric or string arrays"
             )
     return headers
+
+
+def _mapped_npz(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """Map an npz's ``xyz`` and ``intensity`` in place, read-only; None unless both are stored uncompressed.
+
+    A stored member's ``.npy`` bytes follow its local file header (30 bytes, then its name and extra
+    field, whose lengths are the header's last two 16-bit fields: the zip format's APPNOTE 4.3.7).
+    Nothing is read but the headers; None also when the file does not hold what its directory says.
+    """
+    try:
+        with zipfile.ZipFile(path) as archive, open(path, "rb") as stream:
+            arrays = []
+            for name in ("xyz.npy", "intensity.npy"):
+                member = archive.getinfo(name)
+                if member.compress_type != zipfile.ZIP_STORED:
+                    return None
+                stream.seek(member.header_offset)
+                header = stream.read(_LOCAL_HEADER.size)
+                signature, name_length, extra_length = _LOCAL_HEADER.unpack(header)
+                if signature != b"PK\x03\x04":
+                    return None
+                stream.seek(name_length + extra_length, io.SEEK_CUR)
+                shape, fortran, dtype = _read_npy_header(stream)
+                if dtype.hasobject:
+                    return None
+                arrays.append(np.memmap(stream, dtype, "r", stream.tell(), shape, order="F" if fortran else "C"))
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, struct.error):
+        return None
+    return arrays[0], arrays[1]
 
 
 def _inspect_npz(path: Path, width: int, height: int, decoding: _Decoding) -> np.ndarray | None:
