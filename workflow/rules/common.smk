@@ -42,8 +42,9 @@ SENSITIVITY = {key: f"{PROCESSED}/sensitivity/{name}" for key, name in SENSITIVI
 # The jobs on the way to summary.json run first; the diagnostics, sensitivity and figures take
 # the cores left over (benchmarks/bench_campaign.py).
 RESULTS_FIRST = 10
-# The sensitivity analysis needs no input: it takes a core before the figures, rather than
-# running alone on one at the end of a run.
+# Among jobs of one priority the greedy scheduler starts those of the most input bytes first: the
+# sensitivity analysis (no input) and the calibration and roughness figures (one store each) take a
+# core before the items' figures, rather than running alone on one at the end of a run.
 BEFORE_FIGURES = 1
 _PLAN = []
 

@@ -34,6 +34,7 @@ rule calibration_figures:
         ),
     log:
         f"{LOGS}/figures/calibration.log",
+    priority: BEFORE_FIGURES
     threads: 1
     resources:
         mem_mb=1500,

@@ -55,6 +55,7 @@ rule roughness_figures:
         ),
     log:
         f"{LOGS}/figures/roughness/{{scene}}.log",
+    priority: BEFORE_FIGURES
     threads: 1
     resources:
         mem_mb=1000,
