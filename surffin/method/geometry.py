@@ -358,32 +358,52 @@ def _level_planes(
     for plane in moments:
         _box(plane, window, out=plane)
     usable = (_box(edges.astype(np.float32), window) == 0) & (moments[0] >= min_count)
-    # The planes overwrite the count, first and second moments block by block, once read.
+    # The planes overwrite the count, first and second moments block by block, once read. The temporaries
+    # of a block are views of one scratch array, written with out= in the operations' order of the formulas.
     normal, residual = moments[1:4], moments[0]
-    for rows in _row_blocks(*usable.shape):
+    blocks = _row_blocks(*usable.shape)
+    scratch = np.empty((9, blocks[0].stop * usable.shape[1]))
+    flags = np.empty(scratch.shape[1], dtype=bool)
+    for rows in blocks:
         count, sums, squares = moments[0, rows], moments[1:4, rows], moments[4:, rows]
+        block = scratch[:, : count.size].reshape(-1, *count.shape)
+        inverse, determinant, inverse_determinant, variance, product, other = block[:6]
+        mean, planar = block[6:], flags[: count.size].reshape(count.shape)
         with np.errstate(invalid="ignore", divide="ignore"):  # empty or collinear windows: discarded below
-            inverse = 1.0 / count
-            mean = sums * inverse
+            np.divide(1.0, count, out=inverse)
+            np.multiply(sums, inverse, out=mean)
             for k, (i, j) in enumerate(_PAIRS):
-                np.subtract(squares[k], sums[i] * mean[j], out=squares[k])
+                squares[k] -= np.multiply(sums[i], mean[j], out=product)
             sxx, sxy, sxq, syy, syq, sqq = squares
-            determinant = sxx * syy - sxy * sxy
-            planar = usable[rows] & (determinant > _MIN_DETERMINANT * sxx * syy)
-            inverse_determinant = 1.0 / determinant
+            np.multiply(sxx, syy, out=determinant)
+            determinant -= np.multiply(sxy, sxy, out=product)
+            np.multiply(_MIN_DETERMINANT, sxx, out=product)
+            np.greater(determinant, np.multiply(product, syy, out=product), out=planar)
+            planar &= usable[rows]
+            np.divide(1.0, determinant, out=inverse_determinant)
             a, b, e = sums  # the sums are no longer needed: the plane takes their place
-            np.multiply(syy * sxq - sxy * syq, inverse_determinant, out=a)
-            np.multiply(sxx * syq - sxy * sxq, inverse_determinant, out=b)
+            np.subtract(np.multiply(syy, sxq, out=product), np.multiply(sxy, syq, out=other), out=product)
+            np.multiply(product, inverse_determinant, out=a)
+            np.subtract(np.multiply(sxx, syq, out=product), np.multiply(sxy, sxq, out=other), out=product)
+            np.multiply(product, inverse_determinant, out=b)
             mean += centre[:, None, None]
-            np.subtract(mean[2] - a * mean[0], b * mean[1], out=e)
+            np.subtract(mean[2], np.multiply(a, mean[0], out=product), out=product)
+            np.subtract(product, np.multiply(b, mean[1], out=other), out=e)
             # residual variance of q times z^4 = 1 / mean(q)^4: depth units
-            variance = (sqq - a * sxq - b * syq) * inverse
+            np.subtract(sqq, np.multiply(a, sxq, out=product), out=variance)
+            variance -= np.multiply(b, syq, out=product)
+            variance *= inverse
             if slopes:
                 scale = _normalise(normal[:, rows])
                 centroid[:, rows] = mean[:2]
-                noise[rows] = np.maximum(variance, 0.0) * (sxx + syy) * inverse_determinant * scale * scale
+                np.maximum(variance, 0.0, out=product)
+                product *= np.add(sxx, syy, out=other)
+                product *= inverse_determinant
+                product *= scale
+                np.multiply(product, scale, out=noise[rows])
             mean[2] *= mean[2]
-            residual[rows] = np.where(planar, variance / (mean[2] * mean[2]), np.inf)
+            np.divide(variance, np.multiply(mean[2], mean[2], out=product), out=count)
+            np.copyto(count, np.inf, where=~planar)
     source, smallest = _choose_windows(residual, eligible, window)
     return normal, residual, source, smallest, centroid, noise
 
