@@ -410,7 +410,11 @@ def _level_planes(
 
 def _normalise(vector: np.ndarray) -> np.ndarray:
     """Divide ``vector`` (3, ...) by its norm, in place, and return the inverse norm."""
-    scale = 1.0 / np.sqrt(vector[0] * vector[0] + vector[1] * vector[1] + vector[2] * vector[2])
+    scale = np.multiply(vector[0], vector[0])
+    square = np.multiply(vector[1], vector[1])
+    scale += square
+    scale += np.multiply(vector[2], vector[2], out=square)
+    np.divide(1.0, np.sqrt(scale, out=scale), out=scale)
     vector *= scale
     return scale
 
@@ -523,26 +527,39 @@ def _normal_slopes(
     return model, known
 
 
-def _carry(model: np.ndarray, rays: np.ndarray) -> np.ndarray:
-    """Evaluate :func:`_normal_slopes`' models (14, n), taken at n pixels, at their rays (2, n): unit normals (3, n).
+def _carry(model: np.ndarray, rays: np.ndarray, out: np.ndarray) -> None:
+    """Evaluate :func:`_normal_slopes`' models (14, n) of n pixels at their rays (2, n): unit normals, into ``out``.
 
     The correction ``c = J (r - m)``, with ``v = o^T V o`` its noise variance, is
     shrunk by ``max(0, 1 - s^2 v / |c|^2)`` (s = :data:`_SIGNIFICANCE`, a
     positive-part James-Stein factor): where the slopes are noise (a plane) it
     vanishes, and the plane's normal is kept as it is; where they are the
-    surface's curvature it stays.
+    surface's curvature it stays. ``out`` is (3, n); the temporaries are written with out=, in the formulas' order.
     """
-    x, y = rays[0] - model[3], rays[1] - model[4]
+    x, y = np.subtract(rays[0], model[3]), np.subtract(rays[1], model[4])
     variance = model[11:]
-    correction = model[5:11:2] * x + model[6:11:2] * y
-    noise = variance[0] * x * x + 2.0 * variance[1] * x * y + variance[2] * y * y
-    size = correction[0] * correction[0] + correction[1] * correction[1] + correction[2] * correction[2]
+    correction = np.multiply(model[5:11:2], x, out=out)
+    correction += model[6:11:2] * y
+    noise = np.multiply(variance[0], x)
+    noise *= x
+    term = np.multiply(2.0, variance[1])
+    term *= x
+    term *= y
+    noise += term
+    np.multiply(variance[2], y, out=term)
+    term *= y
+    noise += term
+    size = np.multiply(correction[0], correction[0], out=x)
+    size += np.multiply(correction[1], correction[1], out=y)
+    size += np.multiply(correction[2], correction[2], out=term)
     with np.errstate(invalid="ignore", divide="ignore"):
-        shrink = np.where(size > 0.0, np.clip(1.0 - _SIGNIFICANCE**2 * noise / size, 0.0, 1.0), 0.0)
+        shrink = np.multiply(_SIGNIFICANCE**2, noise, out=noise)
+        shrink /= size
+        np.clip(np.subtract(1.0, shrink, out=shrink), 0.0, 1.0, out=shrink)
+    np.copyto(shrink, 0.0, where=~(size > 0.0))
     correction *= shrink
     correction += model[:3]
     _normalise(correction)
-    return correction
 
 
 def _levels(window: int, max_window: int) -> int:
@@ -591,7 +608,6 @@ def _window_planes(
     eligible = valid & ~edges
     moments, centre = _moments(points, valid)
     levels = _levels(window, max_window)
-    rows, columns = (range(size)[part] for part, size in zip(region, valid.shape))
     # x', y' (2, h * w) of the region's pixels (meaningless where invalid)
     rays = (moments[1:3, region[0], region[1]] + centre[:2, None, None]).reshape(2, -1) if levels > 1 else None
     pooled = _pool(moments) if levels > 1 else None
@@ -618,53 +634,70 @@ def _window_planes(
         last += taken
     # the region's pixels from here on: each pixel's normal is its own
     last, base_source = last[region[0], region[1]], base_source[region[0], region[1]]
-    out = np.full((3, len(rows), len(columns)), np.nan)
-    flat = out.reshape(3, -1)
+    if planes:
+        # every pixel is carried, in contiguous blocks (its ray and normal are slices, not gathers and scatters):
+        # from the model of its last level's cell, or, at the pixels of the base level, from the column of NaN
+        # (their normal, where they have one, is set below)
+        taking = np.full(valid.shape, -1, dtype=np.int8)  # the last level of the region's pixels, -1 elsewhere
+        taking[region[0], region[1]] = last
+        models, columns = _level_models(planes, taking, window // 2)
+        index = np.full(last.shape, models.shape[1] - 1, dtype=np.int32)
+        for level, column in enumerate(columns, start=1):
+            np.copyto(index, _upsample(column, level, valid.shape)[region[0], region[1]], where=last == level)
+        out = np.empty((3, *last.shape))
+        flat, index = out.reshape(3, -1), index.reshape(-1)
+        for block in range(0, index.size, _BLOCK):
+            part = slice(block, block + _BLOCK)
+            _carry(models.take(index[part], axis=1), rays[:, part], flat[:, part])
+    else:
+        out = np.full((3, *last.shape), np.nan)
+        flat = out.reshape(3, -1)
     pixel = np.flatnonzero((last == 0) & (base_source >= 0))
     normal = base.reshape(3, -1).take(base_source.reshape(-1)[pixel], axis=1)
     _normalise(normal)
     flat[:, pixel] = normal
-    # each pixel takes the normal of its last level's cell (flat indices in the region and the level's grid),
-    # carried to the pixel
-    pixels, cells = [], []
-    for level, (*_, source) in enumerate(planes, start=1):
-        pixels.append(np.flatnonzero(last == level))
-        row, column = (np.arange(part.start, part.stop, dtype=np.int32) >> level for part in (rows, columns))
-        cells.append((row[:, None] * np.int32(source.shape[1]) + column).reshape(-1).take(pixels[-1]))
-    for pixel, (model, column) in zip(pixels, _level_models(planes, cells, window // 2)):
-        for block in range(0, pixel.size, _BLOCK):
-            part = slice(block, block + _BLOCK)
-            flat[:, pixel[part]] = _carry(model.take(column[part], axis=1), rays.take(pixel[part], axis=1))
     return out
 
 
-def _level_models(planes: list, cells: list, half: int) -> list[tuple[np.ndarray, np.ndarray]]:
+def _level_models(planes: list, last: np.ndarray, half: int) -> tuple[np.ndarray, list[np.ndarray]]:
     """Model the normal (:func:`_normal_slopes`) in the cells of each level from 1 that a pixel takes.
 
     A cell without slopes on both axes takes the mean of its 2 x 2 smaller cells' that had them; so, from the
-    largest level down, a level's models are computed at the cells its pixels take (``cells[k]``: flat indices,
-    for the pixels whose last level is k + 1) and at the smaller cells of the cells above that lack slopes.
-    Returns, for each level, the models (14, m) of those cells and the column of each pixel's cell among them.
+    largest level down, a level's models are computed at the cells its pixels take (those holding a pixel whose
+    last level, in ``last`` (H, W), is that level) and at the smaller cells of the cells above that lack slopes.
+
+    Returns
+    -------
+    models : (14, m + 1) ndarray of float64
+        The models of all levels, side by side, and a last column of NaN.
+    columns : list of ndarray
+        For each level from 1, the column (h, w) int32 of each cell's model (meaningless at the cells no pixel takes).
     """
     found = []  # per level from the largest: models, slopes known, cells, column of each cell's model, grid shape
     lacking = None  # the cells of the level above without slopes on both axes
     for level in range(len(planes), 0, -1):
         normal, centroid, noise, residual, source = planes[level - 1]
-        needed = np.zeros(source.shape, dtype=bool)
-        needed.reshape(-1)[cells[level - 1]] = True
+        taking = (last == level).astype(np.float32)
+        for _ in range(level):
+            taking = _pool(taking)
+        needed = taking > 0
         if lacking is not None:
             needed |= lacking.repeat(2, axis=0).repeat(2, axis=1)[: source.shape[0], : source.shape[1]]
         needed = np.flatnonzero(needed)
         model, known = _normal_slopes(normal, centroid, noise, residual, source, half, needed)
         lacking = np.zeros(source.shape, dtype=bool)
         lacking.reshape(-1)[needed[~known]] = True
-        column = np.full(source.size, -1)  # -1: no model
+        column = np.full(source.size, -1, dtype=np.int32)  # -1: no model
         column[needed] = np.arange(needed.size)
         found.append((model, known, needed, column, source.shape))
     found.reverse()
     for level, smaller in zip(found[1:], found):
         _fill_slopes(level, smaller)
-    return [(model, column.take(pixel_cells)) for (model, _, _, column, _), pixel_cells in zip(found, cells)]
+    columns, offset = [], 0
+    for model, _, _, column, shape in found:
+        columns.append((column + np.int32(offset)).reshape(shape))
+        offset += model.shape[1]
+    return np.concatenate([model for model, *_ in found] + [np.full((14, 1), np.nan)], axis=1), columns
 
 
 def _fill_slopes(level: tuple, smaller: tuple) -> None:
