@@ -802,13 +802,21 @@ def frame_angle_of_incidence(
     aoi = np.empty(valid.shape)
     distance = np.empty(valid.shape)
     for rows in _row_blocks(*valid.shape):
+        # written with out= into the results, in the formulas' order: |P| = sqrt(x x + y y + z z), cos = |n . P| / |P|
         (x, y, z), (nx, ny, nz) = points[:, rows], normal[:, rows]
+        norm, cosine, term = distance[rows], aoi[rows], np.multiply(y, y)
         with np.errstate(invalid="ignore", divide="ignore"):  # invalid points: NaN below
-            norm = np.sqrt(x * x + y * y + z * z)
-            cosine = np.abs(nx * x + ny * y + nz * z) / norm
-        aoi[rows] = np.arccos(np.minimum(cosine, 1.0, out=cosine))
-        norm[~valid[rows]] = np.nan
-        distance[rows] = norm
+            np.multiply(x, x, out=norm)
+            norm += term
+            norm += np.multiply(z, z, out=term)
+            np.sqrt(norm, out=norm)
+            np.multiply(nx, x, out=cosine)
+            cosine += np.multiply(ny, y, out=term)
+            cosine += np.multiply(nz, z, out=term)
+            np.abs(cosine, out=cosine)
+            cosine /= norm
+        np.arccos(np.minimum(cosine, 1.0, out=cosine), out=cosine)
+        np.copyto(norm, np.nan, where=~valid[rows])
     return aoi, distance
 
 
