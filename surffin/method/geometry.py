@@ -485,19 +485,31 @@ def _normal_slopes(
     scatter = np.zeros((3, cells.size))  # sum of d d^T: xx, xy, yy
     spread = np.zeros((3, cells.size))  # sum of the changes' noise times d d^T
     moments = np.zeros((3, 2, cells.size))  # sum of (change of the normal) d^T
-    for dy, dx in _DIRECTIONS[:2]:
+    # each neighbour's terms, written with out= in the formulas' order
+    products, terms = np.empty((3, cells.size)), np.empty((3, 2, cells.size))
+    for along_rows, (position, size) in enumerate(((column, width), (row, height))):  # _DIRECTIONS[:2]'s order
         for sign in (-1, 1):
-            other_row, other_column = row + sign * dy * half, column + sign * dx * half
-            inside = (other_row >= 0) & (other_row < height) & (other_column >= 0) & (other_column < width)
-            other = np.where(inside, other_row * width + other_column, 0)
-            used = inside & (residuals[other] <= limit)
-            step = np.where(used, centroids.take(other, axis=1) - own_centroid, 0.0)
-            change = np.where(used, normals.take(other, axis=1) - own_normal, 0.0)
-            products = np.stack((step[0] * step[0], step[0] * step[1], step[1] * step[1]))
+            moved = position + sign * half  # the other coordinate stays inside the grid
+            inside = (moved >= 0) & (moved < size)
+            other = np.where(inside, moved * width + column if along_rows else row * width + moved, 0)
+            unused = ~(inside & (residuals[other] <= limit))
+            step = centroids.take(other, axis=1)
+            step -= own_centroid
+            np.copyto(step, 0.0, where=unused)
+            change = normals.take(other, axis=1)
+            change -= own_normal
+            np.copyto(change, 0.0, where=unused)
+            np.multiply(step[0], step[0], out=products[0])
+            np.multiply(step[0], step[1], out=products[1])
+            np.multiply(step[1], step[1], out=products[2])
             scatter += products
             # an unused neighbour adds nothing: beyond the border (read at cell 0) or empty, its noise is NaN
-            spread += products * np.where(used, own_noise + noises[other], 0.0)
-            moments += change[:, None] * step[None]
+            weight = noises.take(other)
+            np.add(own_noise, weight, out=weight)
+            np.copyto(weight, 0.0, where=unused)
+            products *= weight
+            spread += products
+            moments += np.multiply(change[:, None], step[None], out=terms)
     determinant = scatter[0] * scatter[2] - scatter[1] * scatter[1]
     trace = scatter[0] + scatter[2]
     with np.errstate(invalid="ignore", divide="ignore"):  # cells without neighbours: no slope
