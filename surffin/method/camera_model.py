@@ -107,18 +107,7 @@ class CameraModel:
 
     def jacobian(self, points: np.ndarray) -> np.ndarray:
         """Return the derivative of (column, row) with respect to the point, (..., 2, 3); NaN where not projected."""
-        a, b, usable = self._normalised(points)
-        k1, k2, p1, p2, k3, k4, k5, k6 = self._terms
-        r2 = a * a + b * b
-        radial = _radial(r2, k1, k2, k3, k4, k5, k6)
-        slope = _radial_slope(r2, k1, k2, k3, k4, k5, k6) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6))) ** 2
-        # the derivatives of the distorted coordinates by a and b (d xd / db = d yd / da), scaled to pixels
-        mixed = 2 * a * b * slope + 2 * p1 * a + 2 * p2 * b
-        fx, fy = np.float64(self.fx), np.float64(self.fy)  # float64 whatever the points' type
-        by_a = ((radial + 2 * a * a * slope + 2 * p1 * b + 6 * p2 * a) * fx, mixed * fy)
-        by_b = (mixed * fx, (radial + 2 * b * b * slope + 6 * p1 * b + 2 * p2 * a) * fy)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inverse = np.where(usable, 1.0 / points[..., 2], np.nan)
+        a, b, by_a, by_b, inverse = self._derivatives(points)
         # a = x / z, b = y / z: da/dpoint = (1, 0, -a) / z, db/dpoint = (0, 1, -b) / z
         out = np.empty((*a.shape, 2, 3))
         for axis, (da, db) in enumerate(zip(by_a, by_b)):
@@ -126,6 +115,39 @@ class CameraModel:
             np.multiply(db, inverse, out=out[..., axis, 1])
             np.multiply(-(da * a + db * b), inverse, out=out[..., axis, 2])
         return out
+
+    def gradient(self, points: np.ndarray, d_col: np.ndarray, d_row: np.ndarray) -> np.ndarray:
+        """Return the derivative (..., 3) by the point of an image at its projection, of derivatives ``d_col``, ``d_row``.
+
+        ``d_col * jacobian[..., 0, :] + d_row * jacobian[..., 1, :]`` (:meth:`jacobian`), the same
+        values without the (..., 2, 3) array.
+        """
+        a, b, (col_a, row_a), (col_b, row_b), inverse = self._derivatives(points)
+        d_col, d_row = (np.asarray(value, dtype=np.float64) for value in (d_col, d_row))
+        out = np.empty((*a.shape, 3))
+        out[..., 0] = d_col * (col_a * inverse) + d_row * (row_a * inverse)
+        out[..., 1] = d_col * (col_b * inverse) + d_row * (row_b * inverse)
+        out[..., 2] = d_col * (-(col_a * a + col_b * b) * inverse) + d_row * (-(row_a * a + row_b * b) * inverse)
+        return out
+
+    def _derivatives(self, points: np.ndarray):
+        """Return ``a``, ``b`` (:meth:`_normalised`), the derivatives (pixels) of (column, row) by ``a`` and by ``b``,
+        and ``1 / z`` (NaN where not projected).
+        """
+        a, b, usable = self._normalised(points)
+        k1, k2, p1, p2, k3, k4, k5, k6 = self._terms
+        r2 = a * a + b * b
+        numerator, denominator = _numerator(r2, k1, k2, k3), _denominator(r2, k4, k5, k6)
+        radial = numerator if k4 == k5 == k6 == 0 else numerator / denominator  # as _radial
+        slope = _radial_slope(r2, numerator, denominator, k1, k2, k3, k4, k5, k6) / denominator**2
+        # the derivatives of the distorted coordinates by a and b (d xd / db = d yd / da), scaled to pixels
+        mixed = 2 * a * b * slope + 2 * p1 * a + 2 * p2 * b
+        fx, fy = np.float64(self.fx), np.float64(self.fy)  # float64 whatever the points' type
+        by_a = ((radial + 2 * a * a * slope + 2 * p1 * b + 6 * p2 * a) * fx, mixed * fy)
+        by_b = (mixed * fx, (radial + 2 * b * b * slope + 6 * p1 * b + 2 * p2 * a) * fy)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inverse = np.where(usable, 1.0 / points[..., 2], np.nan)
+        return a, b, by_a, by_b, inverse
 
     def _normalised(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Return ``x / z``, ``y / z`` (0 where unusable) and where the projection is defined."""
@@ -153,12 +175,22 @@ class CameraModel:
         )
 
 
+def _numerator(r2, k1, k2, k3):
+    """Return the numerator of the radial factor of the distortion at ``r2``."""
+    return 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+
+
+def _denominator(r2, k4, k5, k6):
+    """Return the denominator of the radial factor of the distortion at ``r2``."""
+    return 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+
+
 def _radial(r2, k1, k2, k3, k4, k5, k6):
     """Return the radial factor of the distortion at ``r2``."""
-    numerator = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    numerator = _numerator(r2, k1, k2, k3)
     if k4 == k5 == k6 == 0:  # a denominator of 1 divides nothing (finite r2): fewer passes over the points
         return numerator
-    return numerator / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    return numerator / _denominator(r2, k4, k5, k6)
 
 
 @lru_cache(maxsize=64)
@@ -166,17 +198,19 @@ def _fold(coefficients: tuple[float, ...]) -> float:
     """Return :meth:`CameraModel.fold` of all eight distortion coefficients (cached: a scan of the radial factor)."""
     k1, k2, _, _, k3, k4, k5, k6 = coefficients
     r2 = _FOLD_SCAN
-    numerator, denominator = 1 + r2 * (k1 + r2 * (k2 + r2 * k3)), 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    numerator, denominator = _numerator(r2, k1, k2, k3), _denominator(r2, k4, k5, k6)
     # d(r radial)/dr = radial + 2 r2 d(radial)/d(r2) > 0, and the denominator keeps its sign
-    grows = (numerator * denominator + 2 * r2 * _radial_slope(r2, k1, k2, k3, k4, k5, k6) > 0) & (denominator > 0)
+    slope = _radial_slope(r2, numerator, denominator, k1, k2, k3, k4, k5, k6)
+    grows = (numerator * denominator + 2 * r2 * slope > 0) & (denominator > 0)
     stops = np.flatnonzero(~grows)
     return float(r2[stops[0]]) if stops.size else float("inf")
 
 
-def _radial_slope(r2, k1, k2, k3, k4, k5, k6):
-    """Return the derivative of the radial factor by ``r2``, times its denominator squared."""
-    numerator = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    denominator = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+def _radial_slope(r2, numerator, denominator, k1, k2, k3, k4, k5, k6):
+    """Return the derivative of the radial factor by ``r2``, times its denominator squared.
+
+    ``numerator`` and ``denominator``: the radial factor's at ``r2`` (:func:`_numerator`, :func:`_denominator`).
+    """
     return (k1 + r2 * (2 * k2 + 3 * r2 * k3)) * denominator - numerator * (k4 + r2 * (2 * k5 + 3 * r2 * k6))
 
 

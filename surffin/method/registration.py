@@ -528,8 +528,7 @@ def _texture_residuals(transform, points, texture, sampled, camera, origin, tole
     kept = np.flatnonzero(keep)
     local = np.take(local, kept, axis=0)
     # derivative of the texture at the projection with respect to the point (view frame)
-    jacobian = camera.jacobian(local)
-    gradient = d_col[kept, None] * jacobian[:, 0] + d_row[kept, None] * jacobian[:, 1]
+    gradient = camera.gradient(local, d_col[kept], d_row[kept])
     return _twist_jacobian(gradient, local, -gradient), value[kept] - texture[kept]
 
 
@@ -580,9 +579,22 @@ def _sampled(texture: np.ndarray, distance: np.ndarray, sigma: float) -> np.ndar
     return out
 
 
+def _median(values: np.ndarray) -> np.floating:
+    """Return ``np.median`` of values (M,) >= 1 without NaN, bit for bit, in their dtype (~6x faster).
+
+    One partition at the middle (np.median partitions at three places, one to find NaNs);
+    the mean of the middle values as ``np.mean`` sums them, from +0.0.
+    """
+    middle = values.size // 2
+    part = np.partition(values, middle)
+    if values.size % 2:
+        return part[middle] + 0.0
+    return (part[:middle].max() + part[middle] + 0.0) / 2
+
+
 def _robust_deviation(residual: np.ndarray) -> float:
     """Return the standard deviation of residuals (M,) from their median absolute deviation; NaN when none."""
-    return _MAD_SCALE * float(np.median(np.abs(residual - np.median(residual)))) if residual.size else float("nan")
+    return _MAD_SCALE * float(_median(np.abs(residual - _median(residual)))) if residual.size else float("nan")
 
 
 def _robust_normal_equations(
@@ -1202,7 +1214,9 @@ def _pose_refiner(ingest, xyz, distance, points, ref, grid, opts, camera, record
             _sampled(np.where(view_inside > _REFINE_CONTRAST + blur, view_texture, np.nan), view_distance, blur)
             for blur in _REFINE_LEVELS
         ]
-        return source[np.isfinite(source).all(axis=-1)], sampled, float(np.nanmedian(view_distance))
+        measured = view_distance[~np.isnan(view_distance)]
+        scale = float(_median(measured)) if measured.size else float("nan")  # np.nanmedian's value
+        return source[np.isfinite(source).all(axis=-1)], sampled, scale
 
     def refine(index: int, relative: np.ndarray, where: str, iterations: int = _REFINE_ITERATIONS):
         source, sampled, scale = view_data(index)  # scale: metres of surface motion per radian
