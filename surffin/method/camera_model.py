@@ -117,10 +117,11 @@ class CameraModel:
         return out
 
     def gradient(self, points: np.ndarray, d_col: np.ndarray, d_row: np.ndarray) -> np.ndarray:
-        """Return the derivative (..., 3) by the point of an image at its projection, of derivatives ``d_col``, ``d_row``.
+        """Return the derivative (..., 3) by the point of an image at its projection (chain rule).
 
-        ``d_col * jacobian[..., 0, :] + d_row * jacobian[..., 1, :]`` (:meth:`jacobian`), the same
-        values without the (..., 2, 3) array.
+        ``d_col``, ``d_row``: the image's derivatives by column and row there. The values of
+        ``d_col * jacobian[..., 0, :] + d_row * jacobian[..., 1, :]`` (:meth:`jacobian`), without
+        the (..., 2, 3) array.
         """
         a, b, (col_a, row_a), (col_b, row_b), inverse = self._derivatives(points)
         d_col, d_row = (np.asarray(value, dtype=np.float64) for value in (d_col, d_row))
@@ -131,8 +132,10 @@ class CameraModel:
         return out
 
     def _derivatives(self, points: np.ndarray):
-        """Return ``a``, ``b`` (:meth:`_normalised`), the derivatives (pixels) of (column, row) by ``a`` and by ``b``,
-        and ``1 / z`` (NaN where not projected).
+        """Return what :meth:`jacobian` and :meth:`gradient` are made of.
+
+        ``a``, ``b`` (:meth:`_normalised`), the derivatives (pixels) of (column, row) by ``a``
+        and by ``b``, and ``1 / z`` (NaN where not projected).
         """
         a, b, usable = self._normalised(points)
         k1, k2, p1, p2, k3, k4, k5, k6 = self._terms
@@ -292,6 +295,9 @@ def fit_camera_model(xyz: np.ndarray, columns: np.ndarray, rows: np.ndarray) -> 
         return CameraModel(*(float(value) for value in parameters[:4]), tuple(float(value) for value in parameters[4:]))
 
     distorted = {}  # the distorted coordinates of the last distortion coefficients tried
+    # contiguous copies of the columns: the residuals pass over them ~30 times
+    undistorted, pixels = ([np.ascontiguousarray(column) for column in pairs.T] for pairs in (normalised, sensor))
+    count = len(points)
 
     def residuals(parameters: np.ndarray) -> np.ndarray:
         # the finite differences' steps in fx, fy, cx and cy leave the distorted coordinates as they are
@@ -299,11 +305,15 @@ def fit_camera_model(xyz: np.ndarray, columns: np.ndarray, rows: np.ndarray) -> 
         if key not in distorted:
             distorted.clear()
             # unguarded by the fold: a trial model may fold inside the data
-            distorted[key] = model_of(parameters)._distorted(*normalised.T)
-        xd, yd = distorted[key]
-        return np.concatenate(
-            [parameters[0] * xd + parameters[2] - sensor[:, 0], parameters[1] * yd + parameters[3] - sensor[:, 1]]
-        )
+            distorted[key] = model_of(parameters)._distorted(*undistorted)
+        # f * distorted + c - pixel of the columns, then of the rows
+        out = np.empty(2 * count)
+        for axis, (coordinate, pixel) in enumerate(zip(distorted[key], pixels)):
+            part = out[axis * count : (axis + 1) * count]
+            np.multiply(coordinate, parameters[axis], out=part)
+            part += parameters[axis + 2]
+            part -= pixel
+        return out
 
     from scipy.optimize import least_squares  # 0.4 s to import: kept out of snakemake's start
 
