@@ -539,15 +539,17 @@ def _interior(distance: np.ndarray, tolerance: float, relative: float) -> np.nda
     than ``max(tolerance, relative * range)``; both count as edge pixels.
     """
     smooth = np.isfinite(distance)
-    gap = np.maximum(tolerance, relative * np.where(smooth, distance, 0.0))
     with np.errstate(invalid="ignore"):
-        down = np.abs(distance[1:] - distance[:-1]) > np.minimum(gap[1:], gap[:-1])
-        across = np.abs(distance[:, 1:] - distance[:, :-1]) > np.minimum(gap[:, 1:], gap[:, :-1])
-    smooth[1:] &= ~down
-    smooth[:-1] &= ~down
-    smooth[:, 1:] &= ~across
-    smooth[:, :-1] &= ~across
-    return cv2.distanceTransform(smooth.astype(np.uint8), cv2.DIST_L2, 5)
+        # NaN where the range is: its differences are NaN too, and mark no jump
+        gap = np.maximum(relative * distance, tolerance)
+        for axis in (0, 1):
+            ahead, behind = (slice(None),) * axis + (slice(1, None),), (slice(None),) * axis + (slice(None, -1),)
+            difference = np.subtract(distance[ahead], distance[behind])
+            jump = np.greater(np.abs(difference, out=difference), np.minimum(gap[ahead], gap[behind]))
+            no_jump = np.logical_not(jump, out=jump)
+            smooth[ahead] &= no_jump
+            smooth[behind] &= no_jump
+    return cv2.distanceTransform(smooth.view(np.uint8), cv2.DIST_L2, 5)
 
 
 def _correlated(sigma: float, stride: int) -> float:
@@ -567,14 +569,22 @@ def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
     weight = cv2.GaussianBlur(known.astype(image.dtype), (0, 0), sigma)
     total = cv2.GaussianBlur(np.where(known, image, 0.0), (0, 0), sigma)
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(weight >= 0.5, total / weight, np.nan)
+        np.divide(total, weight, out=total)
+    np.copyto(total, np.nan, where=weight < 0.5)  # the weights are finite
+    return total
 
 
 def _sampled(texture: np.ndarray, distance: np.ndarray, sigma: float) -> np.ndarray:
     """Stack what :func:`_texture_residuals` samples: texture blurred by ``sigma``, its derivatives, range (float32)."""
     out = np.empty((*texture.shape, 4), np.float32)
     out[..., 0] = blurred = _blurred(texture, sigma)
-    out[..., 2], out[..., 1] = np.gradient(blurred)
+    # np.gradient's differences (central, one-sided at the edges), written in their channels
+    for channel, axis in ((2, 0), (1, 1)):
+        values, derivative = np.moveaxis(blurred, axis, 0), np.moveaxis(out[..., channel], axis, 0)
+        np.subtract(values[2:], values[:-2], out=derivative[1:-1])
+        derivative[1:-1] /= 2.0
+        np.subtract(values[1], values[0], out=derivative[0])
+        np.subtract(values[-1], values[-2], out=derivative[-1])
     out[..., 3] = distance
     return out
 
@@ -786,11 +796,21 @@ def _texture(intensity: np.ndarray, valid: np.ndarray, sigma: float, dtype=np.fl
         In local standard deviations; NaN on invalid pixels and non-positive intensities.
     """
     usable = valid & (intensity > 0)
-    level = np.where(usable, np.log(np.where(usable, intensity, 1.0)), 0.0)
-    weight = np.maximum(cv2.GaussianBlur(usable.astype(dtype), (0, 0), sigma), np.finfo(dtype).tiny)
-    detail = np.where(usable, level - cv2.GaussianBlur(level, (0, 0), sigma) / weight, 0.0)
-    spread = np.sqrt(cv2.GaussianBlur(detail * detail, (0, 0), sigma) / weight)
-    return np.where(usable, detail / np.maximum(spread, np.finfo(np.float32).eps), np.nan)
+    unusable = ~usable
+    # in place, in the buffers of the operations' results: the same operations, fewer passes over memory
+    level = np.where(usable, intensity, 1.0)
+    np.log(level, out=level)  # 0.0 where unusable
+    weight = cv2.GaussianBlur(usable.astype(dtype), (0, 0), sigma)
+    np.maximum(weight, np.finfo(dtype).tiny, out=weight)
+    detail = np.divide(cv2.GaussianBlur(level, (0, 0), sigma), weight)
+    np.subtract(level, detail, out=detail)
+    np.copyto(detail, 0.0, where=unusable)
+    spread = np.divide(cv2.GaussianBlur(detail * detail, (0, 0), sigma), weight)
+    np.sqrt(spread, out=spread)
+    np.maximum(spread, np.finfo(np.float32).eps, out=spread)
+    np.divide(detail, spread, out=spread)
+    np.copyto(spread, np.nan, where=unusable)
+    return spread
 
 
 def _feature_image(intensity: np.ndarray, valid: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
