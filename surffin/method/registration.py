@@ -576,17 +576,17 @@ def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
 
 def _sampled(texture: np.ndarray, distance: np.ndarray, sigma: float) -> np.ndarray:
     """Stack what :func:`_texture_residuals` samples: texture blurred by ``sigma``, its derivatives, range (float32)."""
-    out = np.empty((*texture.shape, 4), np.float32)
-    out[..., 0] = blurred = _blurred(texture, sigma)
-    # np.gradient's differences (central, one-sided at the edges), written in their channels
-    for channel, axis in ((2, 0), (1, 1)):
-        values, derivative = np.moveaxis(blurred, axis, 0), np.moveaxis(out[..., channel], axis, 0)
+    blurred = _blurred(texture, sigma)
+    by_row, by_col = np.empty_like(blurred), np.empty_like(blurred)
+    # np.gradient's differences (central, one-sided at the edges), in place
+    for derivative, axis in ((by_row, 0), (by_col, 1)):
+        values, derivative = np.moveaxis(blurred, axis, 0), np.moveaxis(derivative, axis, 0)
         np.subtract(values[2:], values[:-2], out=derivative[1:-1])
         derivative[1:-1] /= 2.0
         np.subtract(values[1], values[0], out=derivative[0])
         np.subtract(values[-1], values[-2], out=derivative[-1])
-    out[..., 3] = distance
-    return out
+    # one interleaving pass (assigning the channels of an (H, W, 4) array one by one is ~3x slower)
+    return cv2.merge([np.asarray(channel, dtype=np.float32) for channel in (blurred, by_col, by_row, distance)])
 
 
 def _median(values: np.ndarray) -> np.floating:
@@ -1230,8 +1230,9 @@ def _pose_refiner(ingest, xyz, distance, points, ref, grid, opts, camera, record
         view_distance = distance(index)
         view_texture = _texture(intensity[index], valid[index], _REFINE_CONTRAST, np.float32)
         view_inside = _interior(view_distance, *tolerances)
+        sampled_distance = view_distance.astype(np.float32)  # the levels' stacks hold it in float32
         sampled = [
-            _sampled(np.where(view_inside > _REFINE_CONTRAST + blur, view_texture, np.nan), view_distance, blur)
+            _sampled(np.where(view_inside > _REFINE_CONTRAST + blur, view_texture, np.nan), sampled_distance, blur)
             for blur in _REFINE_LEVELS
         ]
         measured = view_distance[~np.isnan(view_distance)]
