@@ -228,13 +228,34 @@ def _warp_kernel(*arrays: np.ndarray, origin: tuple[int, int], count: int) -> np
     mask (..., H, W) of the images. Returns (..., count, h, w) of float64.
     """
     shape = np.broadcast_shapes(*(np.shape(image) for image in arrays[:count]))
-    images = np.empty((*shape[:-2], count, *shape[-2:]))
-    for layer, image in enumerate(arrays[:count]):
-        images[..., layer, :, :] = image
     map_x, map_y, *valid = arrays[count:]
+    # Only the span of rows and columns the positions read is stacked in float64 (a roi's maps read a
+    # part of the item's grid). The positions on it are the same numbers: subtracting a whole number
+    # of pixels from a position to its right is exact, and those to its left are outside either way.
+    (top, bottom), (left, right) = (
+        _read_span(positions - first, size) for positions, first, size in zip((map_y, map_x), origin, shape[-2:])
+    )
+    part = (..., slice(top, bottom), slice(left, right))
+    images = np.empty((*shape[:-2], count, bottom - top, right - left))
+    for layer, image in enumerate(arrays[:count]):
+        images[..., layer, :, :] = np.asarray(image)[part]
     if valid:
-        np.copyto(images, np.nan, where=~np.asarray(valid[0], dtype=bool)[..., None, :, :])
-    return _bilinear(images, map_x - origin[1], map_y - origin[0])
+        np.copyto(images, np.nan, where=~np.asarray(valid[0], dtype=bool)[part][..., None, :, :])
+    return _bilinear(images, map_x - (origin[1] + left), map_y - (origin[0] + top))
+
+
+def _read_span(positions: np.ndarray, size: int) -> tuple[int, int]:
+    """Return the first and the end (>= first + 2) of the pixels of an axis that bilinear samples read.
+
+    ``positions``: array positions on an axis of ``size`` pixels. From the floor of the smallest
+    finite position less one to the floor of the largest plus two, within the axis; all of it when
+    no position is finite.
+    """
+    finite = positions[np.isfinite(positions)]
+    if not finite.size:
+        return 0, size
+    first = int(np.clip(np.floor(finite.min()) - 1, 0, size - 2))
+    return first, int(np.clip(np.floor(finite.max()) + 2, first + 2, size))
 
 
 def _outside_to_nan(col: np.ndarray, row: np.ndarray, columns: np.ndarray, rows: np.ndarray) -> None:
