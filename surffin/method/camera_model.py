@@ -172,20 +172,50 @@ class CameraModel:
         k1, k2, p1, p2, k3, k4, k5, k6 = self._terms
         r2 = a * a + b * b
         radial = _radial(r2, k1, k2, k3, k4, k5, k6)
-        return (
-            a * radial + 2 * p1 * a * b + p2 * (r2 + 2 * a * a),
-            b * radial + p1 * (r2 + 2 * b * b) + 2 * p2 * a * b,
-        )
+        # xd = a radial + 2 p1 a b + p2 (r2 + 2 a a) and yd = b radial + p1 (r2 + 2 b b) + 2 p2 a b, each
+        # operation as written, in place where its result has the buffer's type (the float64 of the coefficients)
+        xd, yd = a * radial, b * radial
+        xd += _mixed(p1, a, b)
+        xd += p2 * _plus_double_square(r2, a)
+        yd += p1 * _plus_double_square(r2, b)
+        yd += _mixed(p2, a, b)
+        return xd, yd
+
+
+def _mixed(coefficient, a, b):
+    """Return ``2 * coefficient * a * b`` (in one buffer)."""
+    out = 2 * coefficient * a
+    out *= b
+    return out
+
+
+def _plus_double_square(r2, value):
+    """Return ``r2 + 2 * value * value`` (in one buffer; ``r2`` of ``value``'s type)."""
+    out = 2 * value
+    out *= value
+    out += r2
+    return out
 
 
 def _numerator(r2, k1, k2, k3):
     """Return the numerator of the radial factor of the distortion at ``r2``."""
-    return 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    return _polynomial(r2, k1, k2, k3)
 
 
 def _denominator(r2, k4, k5, k6):
     """Return the denominator of the radial factor of the distortion at ``r2``."""
-    return 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    return _polynomial(r2, k4, k5, k6)
+
+
+def _polynomial(r2, c1, c2, c3):
+    """Return ``1 + r2 * (c1 + r2 * (c2 + r2 * c3))`` (float64 coefficients), each operation in one buffer."""
+    out = r2 * c3
+    out += c2
+    out *= r2
+    out += c1
+    out *= r2
+    out += 1
+    return out
 
 
 def _radial(r2, k1, k2, k3, k4, k5, k6):
