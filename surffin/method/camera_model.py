@@ -125,32 +125,61 @@ class CameraModel:
         """
         a, b, (col_a, row_a), (col_b, row_b), inverse = self._derivatives(points)
         d_col, d_row = (np.asarray(value, dtype=np.float64) for value in (d_col, d_row))
+        # the products and sums of jacobian's entries (their operations, in their order), in place
+        parts = []
+        for image, by_a, by_b in ((d_col, col_a, col_b), (d_row, row_a, row_b)):
+            # d_image * (-(by_a * a + by_b * b) * inverse): its part of the derivative by z
+            along = by_a * a
+            along += by_b * b
+            along = np.negative(along, out=along)
+            along *= inverse
+            along *= image
+            by_a *= inverse
+            by_a *= image
+            by_b *= inverse
+            by_b *= image
+            parts.append((by_a, by_b, along))
         out = np.empty((*a.shape, 3))
-        out[..., 0] = d_col * (col_a * inverse) + d_row * (row_a * inverse)
-        out[..., 1] = d_col * (col_b * inverse) + d_row * (row_b * inverse)
-        out[..., 2] = d_col * (-(col_a * a + col_b * b) * inverse) + d_row * (-(row_a * a + row_b * b) * inverse)
+        for axis, (by_col, by_row) in enumerate(zip(*parts)):
+            np.add(by_col, by_row, out=out[..., axis])
         return out
 
     def _derivatives(self, points: np.ndarray):
         """Return what :meth:`jacobian` and :meth:`gradient` are made of.
 
         ``a``, ``b`` (:meth:`_normalised`), the derivatives (pixels) of (column, row) by ``a``
-        and by ``b``, and ``1 / z`` (NaN where not projected).
+        and by ``b``, and ``1 / z`` (NaN where not projected). The derivatives are new float64
+        arrays (:meth:`gradient` scales them in place).
         """
         a, b, usable = self._normalised(points)
         k1, k2, p1, p2, k3, k4, k5, k6 = self._terms
         r2 = a * a + b * b
         numerator, denominator = _numerator(r2, k1, k2, k3), _denominator(r2, k4, k5, k6)
         radial = numerator if k4 == k5 == k6 == 0 else numerator / denominator  # as _radial
-        slope = _radial_slope(r2, numerator, denominator, k1, k2, k3, k4, k5, k6) / denominator**2
-        # the derivatives of the distorted coordinates by a and b (d xd / db = d yd / da), scaled to pixels
-        mixed = 2 * a * b * slope + 2 * p1 * a + 2 * p2 * b
+        slope = _radial_slope(r2, numerator, denominator, k1, k2, k3, k4, k5, k6)
+        slope /= denominator**2
+        # the derivatives of the distorted coordinates by a and b (d xd / db = d yd / da), scaled to pixels:
+        # mixed = 2 a b slope + 2 p1 a + 2 p2 b, (radial + 2 a a slope + 2 p1 b + 6 p2 a) fx and
+        # (radial + 2 b b slope + 6 p1 b + 2 p2 a) fy, each operation as written, in place where its
+        # result has the buffer's type (float64, of the coefficients)
+        double_a = 2 * a
+        mixed = double_a * b * slope
+        mixed += 2 * p1 * a
+        mixed += 2 * p2 * b
         fx, fy = np.float64(self.fx), np.float64(self.fy)  # float64 whatever the points' type
-        by_a = ((radial + 2 * a * a * slope + 2 * p1 * b + 6 * p2 * a) * fx, mixed * fy)
-        by_b = (mixed * fx, (radial + 2 * b * b * slope + 6 * p1 * b + 2 * p2 * a) * fy)
+        along = []
+        for out, first, second, scale in (
+            (double_a * a * slope, 2 * p1 * b, 6 * p2 * a, fx),
+            (2 * b * b * slope, 6 * p1 * b, 2 * p2 * a, fy),
+        ):
+            out += radial  # radial + ..., in either order the same sum
+            out += first
+            out += second
+            out *= scale
+            along.append(out)
         with np.errstate(divide="ignore", invalid="ignore"):
             inverse = np.where(usable, 1.0 / points[..., 2], np.nan)
-        return a, b, by_a, by_b, inverse
+        return a, b, (along[0], mixed * fy), (mixed * fx, along[1]), inverse
 
     def _normalised(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Return ``x / z``, ``y / z`` (0 where unusable) and where the projection is defined."""
@@ -244,7 +273,18 @@ def _radial_slope(r2, numerator, denominator, k1, k2, k3, k4, k5, k6):
 
     ``numerator`` and ``denominator``: the radial factor's at ``r2`` (:func:`_numerator`, :func:`_denominator`).
     """
-    return (k1 + r2 * (2 * k2 + 3 * r2 * k3)) * denominator - numerator * (k4 + r2 * (2 * k5 + 3 * r2 * k6))
+    # (k1 + r2 (2 k2 + 3 r2 k3)) denominator - numerator (k4 + r2 (2 k5 + 3 r2 k6)), in place in float64 buffers
+    thrice = 3 * r2
+    terms = []
+    for constant, linear, square, factor in ((k1, k2, k3, denominator), (k4, k5, k6, numerator)):
+        out = thrice * square
+        out += 2 * linear
+        out *= r2
+        out += constant
+        out *= factor
+        terms.append(out)
+    terms[0] -= terms[1]
+    return terms[0]
 
 
 def _pairs(xyz: np.ndarray, columns: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
