@@ -294,8 +294,10 @@ def _pairs(xyz: np.ndarray, columns: np.ndarray, rows: np.ndarray) -> tuple[np.n
     cols, rws = np.meshgrid(columns[::stride], rows[::stride])
     sensor = np.broadcast_to(np.stack([cols, rws], axis=-1), (*points.shape[:-1], 2))
     with np.errstate(invalid="ignore"):
-        known = np.isfinite(points).all(axis=-1) & (points[..., 2] > 0)
-    return points[known].astype(np.float64), sensor[known].astype(np.float64)
+        known = points[..., 2] > 0
+    for axis in range(3):  # np.isfinite(points).all(axis=-1), ~3x faster
+        known &= np.isfinite(points[..., axis])
+    return points[known].astype(np.float64, copy=False), sensor[known].astype(np.float64)
 
 
 def model_residual(model: CameraModel, xyz: np.ndarray, columns: np.ndarray, rows: np.ndarray) -> float:

@@ -466,7 +466,7 @@ def _point_to_plane(transform, source, target, normals, camera, grid, tolerance,
     """
     # np.dot and np.take: ~10x faster than matmul and fancy indexing on (N, 3) arrays
     moved = np.dot(source, transform[:3, :3].T) + transform[:3, 3]
-    col, row = (np.rint(value) for value in camera.project(moved, (grid[1][0], grid[0][0])))
+    col, row = (np.rint(value, out=value) for value in camera.project(moved, (grid[1][0], grid[0][0])))
     height, width = target.shape[:2]
     with np.errstate(invalid="ignore"):
         found = np.flatnonzero((col >= 0) & (col < width) & (row >= 0) & (row < height))
@@ -500,10 +500,11 @@ def _remap(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
     if not count:  # no position (a level without textured samples): cv2.remap refuses empty maps
         return np.empty((0, image.shape[-1]), image.dtype)
     padded = -(-count // _REMAP_ROW) * _REMAP_ROW
-    maps = [
-        np.pad(value, (0, padded - count), constant_values=-1.0).astype(np.float32).reshape(-1, _REMAP_ROW)
-        for value in (col, row)
-    ]
+    maps = []
+    for value in (col, row):
+        laid = np.full(padded, -1.0, np.float32)
+        laid[:count] = value
+        maps.append(laid.reshape(-1, _REMAP_ROW))
     nan = (np.nan,) * image.shape[-1]
     out = cv2.remap(image, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=nan)
     return out.reshape(padded, -1)[:count]
@@ -540,7 +541,7 @@ def _texture_residuals(transform, points, texture, sampled, camera, origin, tole
         The view's texture at the projected point minus the reference's.
     """
     local = np.dot(points, transform[:3, :3].T) + transform[:3, 3]
-    col, row = (np.nan_to_num(value, nan=-1.0) for value in camera.project(local, origin))
+    col, row = (np.nan_to_num(value, copy=False, nan=-1.0) for value in camera.project(local, origin))
     value, d_col, d_row, measured = _remap(sampled, col, row).T
     distance = np.sqrt(np.einsum("ij,ij->i", local, local))
     with np.errstate(invalid="ignore"):
