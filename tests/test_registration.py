@@ -518,6 +518,11 @@ def test_projection_and_its_derivative_agree_with_opencv(distortion):
     np.testing.assert_allclose(col + 20, image[:, 0, 0], atol=1e-9)
     np.testing.assert_allclose(row + 10, image[:, 0, 1], atol=1e-9)
     np.testing.assert_allclose(camera.jacobian(points), jacobian[:, 3:6].reshape(-1, 2, 3), rtol=1e-9, atol=1e-9)
+    # the derivative of an image at the projection: the Jacobian's rows weighted by the image's derivatives, exactly
+    d_col, d_row = rng.normal(size=(2, 500)).astype(np.float32)
+    ours = camera.jacobian(points)
+    expected = d_col[:, None] * ours[:, 0] + d_row[:, None] * ours[:, 1]
+    np.testing.assert_array_equal(camera.gradient(points, d_col, d_row), expected)
 
 
 def test_projection_is_undefined_behind_the_camera_and_beyond_the_lens_fold():
@@ -893,6 +898,24 @@ def test_warp_on_grids_of_several_bands_whole_pixels_and_fractions():
         np.testing.assert_allclose(out[view][known], reference[known], rtol=0, atol=1e-12)
     # a NaN neighbour with no weight leaves a whole pixel as it is; the missing pixel itself stays missing
     assert np.isnan(out[:, :, 1]).all() and np.isfinite(out[:, :, [0, 2, 3]]).all()
+
+
+def test_warp_gives_the_same_bits_whatever_part_of_the_grid_its_maps_read():
+    # only the rows and columns the maps read are stacked: maps that read the whole grid give the same samples
+    rng = np.random.default_rng(8)
+    y0, x0, h, w = 40, 60, 80, 90
+    image = rng.normal(size=(2, h, w))
+    image[rng.random(image.shape) < 0.05] = np.nan
+    data = cube(image, y0, x0)
+    map_x = rng.uniform(x0 + 50, x0 + w + 5, (2, 6, 8)).astype(np.float32)  # some past the last column
+    map_y = rng.uniform(y0 - 3, y0 + 30, (2, 6, 8)).astype(np.float32)  # some before the first row
+    map_x[:, 0, 0], map_y[:, 0, 0] = x0 + w - 1, y0 + 20  # on the last column
+    map_x[:, 0, 1] = np.nan
+    part = warp(data, maps_of(map_x, map_y, np.arange(6), np.arange(8), ["v00", "v01"])).values
+    map_x[:, :4, 7], map_y[:, :4, 7] = [x0, x0 + w - 1, x0, x0 + w - 1], [y0, y0, y0 + h - 1, y0 + h - 1]
+    whole = warp(data, maps_of(map_x, map_y, np.arange(6), np.arange(8), ["v00", "v01"])).values
+    np.testing.assert_array_equal(part[..., :7].view(np.uint64), whole[..., :7].view(np.uint64))
+    assert np.isfinite(part[..., :7]).sum() > 40 and np.isnan(part[:, 0, 1]).all()
 
 
 def test_warp_is_lazy_on_dask_and_agrees_with_numpy():

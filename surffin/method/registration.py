@@ -248,13 +248,13 @@ def _read_span(positions: np.ndarray, size: int) -> tuple[int, int]:
     """Return the first and the end (>= first + 2) of the pixels of an axis that bilinear samples read.
 
     ``positions``: array positions on an axis of ``size`` pixels. From the floor of the smallest
-    finite position less one to the floor of the largest plus two, within the axis; all of it when
-    no position is finite.
+    finite position to the floor of the largest plus two, within the axis; all of it when no
+    position is finite.
     """
     finite = positions[np.isfinite(positions)]
     if not finite.size:
         return 0, size
-    first = int(np.clip(np.floor(finite.min()) - 1, 0, size - 2))
+    first = int(np.clip(np.floor(finite.min()), 0, size - 2))
     return first, int(np.clip(np.floor(finite.max()) + 2, first + 2, size))
 
 
