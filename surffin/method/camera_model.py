@@ -131,7 +131,7 @@ class CameraModel:
             # d_image * (-(by_a * a + by_b * b) * inverse): its part of the derivative by z
             along = by_a * a
             along += by_b * b
-            along = np.negative(along, out=along)
+            along = -along
             along *= inverse
             along *= image
             by_a *= inverse

@@ -601,8 +601,8 @@ def _sampled(texture: np.ndarray, distance: np.ndarray, sigma: float) -> np.ndar
     blurred = _blurred(texture, sigma)
     by_row, by_col = np.empty_like(blurred), np.empty_like(blurred)
     # np.gradient's differences (central, one-sided at the edges), in place
-    for derivative, axis in ((by_row, 0), (by_col, 1)):
-        values, derivative = np.moveaxis(blurred, axis, 0), np.moveaxis(derivative, axis, 0)
+    for target, axis in ((by_row, 0), (by_col, 1)):
+        values, derivative = np.moveaxis(blurred, axis, 0), np.moveaxis(target, axis, 0)
         np.subtract(values[2:], values[:-2], out=derivative[1:-1])
         derivative[1:-1] /= 2.0
         np.subtract(values[1], values[0], out=derivative[0])
