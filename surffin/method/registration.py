@@ -1177,7 +1177,7 @@ def _part(grid: tuple[np.ndarray, np.ndarray], window: Roi | None, item: str) ->
     return slice(inside.y[0] - first[0], inside.y[1] - first[0]), slice(inside.x[0] - first[1], inside.x[1] - first[1])
 
 
-def _pose_refiner(ingest, xyz, distance, points, ref, grid, opts, camera, recorded):
+def _pose_refiner(ingest, xyz, reference, distance, points, ref, grid, opts, camera, recorded):
     """Build the pose refinement of the poses methods (:func:`_refine_pose`).
 
     Parameters
@@ -1185,7 +1185,9 @@ def _pose_refiner(ingest, xyz, distance, points, ref, grid, opts, camera, record
     ingest : Dataset
         The item's ingest cube (``intensity``, ``valid``, attrs ``camera``).
     xyz : (view, h, w, 3) ndarray, metres
-        Every view's points, its camera frame; NaN = invalid.
+        Every view's points, its camera frame, as stored (float32 or float64); NaN = invalid.
+    reference : (h, w, 3) ndarray of float64, metres
+        The reference view's points.
     distance : callable
         ``distance(index)``: the ranges (h, w) of view ``index``'s points, metres.
     points : (h, w, 3) ndarray, metres
@@ -1217,7 +1219,7 @@ def _pose_refiner(ingest, xyz, distance, points, ref, grid, opts, camera, record
     tolerances = opts["tolerance"], opts["relative"]
     stride = max(1, round(np.sqrt(points.shape[0] * points.shape[1] / _REFINE_SAMPLES)))
     # contiguous: the point-to-plane pairs gather its rows every iteration
-    normals = np.ascontiguousarray(plane_normals(xyz[ref], _REFINE_WINDOW))
+    normals = np.ascontiguousarray(plane_normals(reference, _REFINE_WINDOW))
     target = np.where(np.isfinite(normals), points, np.nan)
     # texture samples whose normalisation and blur windows keep off depth edges: the edges move
     # with the parallax between views, and the surfaces beside them are seen differently (at the samples only)
@@ -1248,7 +1250,7 @@ def _pose_refiner(ingest, xyz, distance, points, ref, grid, opts, camera, record
     @cache
     def view_data(index: int):
         """Return a view's sampled points, texture stacks (:func:`_sampled`) per level and median range."""
-        source = xyz[index][::stride, ::stride].reshape(-1, 3)
+        source = xyz[index][::stride, ::stride].reshape(-1, 3).astype(np.float64)
         view_distance = distance(index)
         view_texture = _texture(intensity[index], valid[index], _REFINE_CONTRAST, np.float32)
         view_inside = _interior(view_distance, *tolerances)
@@ -1471,9 +1473,12 @@ def _pose_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict, part
     reference view estimated from the clouds (:func:`_pose_estimator`), always refined.
     """
     views = [str(view) for view in ingest["view"].values]
-    xyz = np.asarray(ingest["xyz"].transpose("view", "y", "x", "axis").values, dtype=np.float64)
+    # The points as stored, each view's in float64 when it is used: the camera model's samples, the
+    # reference view and each view's ranges (a float64 copy of the whole cube costs ~4x more, in fresh pages).
+    xyz = np.asarray(ingest["xyz"].transpose("view", "y", "x", "axis").values)
     camera, described = _camera_model(ingest, xyz, grid, item)
-    points = _smooth_range(xyz[ref], opts["smooth"], opts["tolerance"], opts["relative"])
+    reference = xyz[ref].astype(np.float64)
+    points = _smooth_range(reference, opts["smooth"], opts["tolerance"], opts["relative"])
     if not estimate:
         poses = np.asarray(ingest["pose"].values, dtype=np.float64)
         _check_poses(poses, views, item)
@@ -1481,11 +1486,17 @@ def _pose_mapper(ingest: xr.Dataset, ref: int, item: str, grid, opts: dict, part
     @cache
     def distance(index: int) -> np.ndarray:
         """Return the ranges (h, w) of view ``index``'s points, metres (its refinement and its map use them)."""
-        return _norm(xyz[index])
+        return _norm(xyz[index].astype(np.float64))
 
     refined = opts["refine"] or estimate  # a coarse estimate alone registers no better than to a few mm
-    refine = _pose_refiner(ingest, xyz, distance, points, ref, grid, opts, camera, not estimate) if refined else None
-    estimated = _pose_estimator(xyz, ref, views, item, opts["tolerance"], refine) if estimate else None
+    refine = (
+        _pose_refiner(ingest, xyz, reference, distance, points, ref, grid, opts, camera, not estimate)
+        if refined
+        else None
+    )
+    estimated = (
+        _pose_estimator(xyz.astype(np.float64), ref, views, item, opts["tolerance"], refine) if estimate else None
+    )
     target = (grid[0][part[1]], grid[1][part[0]])
 
     def one(index: int):
