@@ -154,7 +154,7 @@ class CameraModel:
         a, b, usable = self._normalised(points)
         k1, k2, p1, p2, k3, k4, k5, k6 = self._terms
         r2 = a * a + b * b
-        numerator, denominator = _numerator(r2, k1, k2, k3), _denominator(r2, k4, k5, k6)
+        numerator, denominator = _polynomial(r2, k1, k2, k3), _polynomial(r2, k4, k5, k6)
         radial = numerator if k4 == k5 == k6 == 0 else numerator / denominator  # as _radial
         slope = _radial_slope(r2, numerator, denominator, k1, k2, k3, k4, k5, k6)
         slope /= denominator**2
@@ -226,18 +226,11 @@ def _plus_double_square(r2, value):
     return out
 
 
-def _numerator(r2, k1, k2, k3):
-    """Return the numerator of the radial factor of the distortion at ``r2``."""
-    return _polynomial(r2, k1, k2, k3)
-
-
-def _denominator(r2, k4, k5, k6):
-    """Return the denominator of the radial factor of the distortion at ``r2``."""
-    return _polynomial(r2, k4, k5, k6)
-
-
 def _polynomial(r2, c1, c2, c3):
-    """Return ``1 + r2 * (c1 + r2 * (c2 + r2 * c3))`` (float64 coefficients), each operation in one buffer."""
+    """Return ``1 + r2 * (c1 + r2 * (c2 + r2 * c3))`` (float64 coefficients), each operation in one buffer.
+
+    The radial factor of the distortion is ``_polynomial(r2, k1, k2, k3) / _polynomial(r2, k4, k5, k6)``.
+    """
     out = r2 * c3
     out += c2
     out *= r2
@@ -249,10 +242,10 @@ def _polynomial(r2, c1, c2, c3):
 
 def _radial(r2, k1, k2, k3, k4, k5, k6):
     """Return the radial factor of the distortion at ``r2``."""
-    numerator = _numerator(r2, k1, k2, k3)
+    numerator = _polynomial(r2, k1, k2, k3)
     if k4 == k5 == k6 == 0:  # a denominator of 1 divides nothing (finite r2): fewer passes over the points
         return numerator
-    return numerator / _denominator(r2, k4, k5, k6)
+    return numerator / _polynomial(r2, k4, k5, k6)
 
 
 @lru_cache(maxsize=64)
@@ -260,7 +253,7 @@ def _fold(coefficients: tuple[float, ...]) -> float:
     """Return :meth:`CameraModel.fold` of all eight distortion coefficients (cached: a scan of the radial factor)."""
     k1, k2, _, _, k3, k4, k5, k6 = coefficients
     r2 = _FOLD_SCAN
-    numerator, denominator = _numerator(r2, k1, k2, k3), _denominator(r2, k4, k5, k6)
+    numerator, denominator = _polynomial(r2, k1, k2, k3), _polynomial(r2, k4, k5, k6)
     # d(r radial)/dr = radial + 2 r2 d(radial)/d(r2) > 0, and the denominator keeps its sign
     slope = _radial_slope(r2, numerator, denominator, k1, k2, k3, k4, k5, k6)
     grows = (numerator * denominator + 2 * r2 * slope > 0) & (denominator > 0)
@@ -271,7 +264,7 @@ def _fold(coefficients: tuple[float, ...]) -> float:
 def _radial_slope(r2, numerator, denominator, k1, k2, k3, k4, k5, k6):
     """Return the derivative of the radial factor by ``r2``, times its denominator squared.
 
-    ``numerator`` and ``denominator``: the radial factor's at ``r2`` (:func:`_numerator`, :func:`_denominator`).
+    ``numerator`` and ``denominator``: the radial factor's at ``r2`` (:func:`_polynomial`).
     """
     # (k1 + r2 (2 k2 + 3 r2 k3)) denominator - numerator (k4 + r2 (2 k5 + 3 r2 k6)), in place in float64 buffers
     thrice = 3 * r2
