@@ -28,7 +28,7 @@ import numpy as np
 import xarray as xr
 
 from surffin.io.files import write_atomically
-from surffin.io.store import open_store
+from surffin.io.store import load_store, open_store
 from surffin.method.camera_model import fit_camera_model
 from surffin.method.classify import UNCLASSIFIED, UNCLASSIFIED_REASONS
 from surffin.report.canvas import figure, save
@@ -215,8 +215,8 @@ def _provenance(labels: xr.Dataset, calibration: Path) -> list[str]:
 
 
 def _item_store(processed: Path, folder: str, name: str) -> xr.Dataset:
-    """Open an item's store without dask: a variable is read when used (through dask, each cost a graph)."""
-    return open_store(processed / folder / f"{name}.zarr", chunks=None)
+    """Load an item's store into memory (:func:`~surffin.io.store.load_store`)."""
+    return load_store(processed / folder / f"{name}.zarr")
 
 
 def _specimen_ply(name: str, features: xr.Dataset, processed: Path, out: Path, classes: Sequence[str]) -> Path:
