@@ -10,11 +10,13 @@ objects do not weigh on the garbage collector's later passes.
 from __future__ import annotations
 
 import contextlib
+import functools
 import gc
 import io
 import logging
 import os
 import struct
+import threading
 import zlib
 from pathlib import Path
 
@@ -28,6 +30,8 @@ log = logging.getLogger("surffin")
 
 #: Resolution of the written images, dots per inch.
 DPI = 120
+#: Each thread's last renderer (:func:`_renderer`).
+_THREAD = threading.local()
 #: Matplotlib settings of drawing: text unhinted. Hinting took a third of drawing a text, and texts take
 #: a good part of drawing a figure; at :data:`DPI` unhinted text reads as well.
 DRAWING = {"text.hinting": "no_hinting"}
@@ -55,7 +59,7 @@ def figure(width: float, height: float, layout: str | None = "constrained"):
 def save(fig, path: str | os.PathLike, *, dpi: float = DPI) -> Path:
     """Write a figure with :data:`DRAWING`, atomically, in the image format of the path's suffix.
 
-    PNG is encoded by :func:`_png`.
+    PNG is drawn on a renderer of :func:`_renderer` (:func:`_canvas_type`) and encoded by :func:`_png`.
 
     Parameters
     ----------
@@ -77,9 +81,7 @@ def save(fig, path: str | os.PathLike, *, dpi: float = DPI) -> Path:
     kind = path.suffix.lstrip(".").lower() or "png"
     with matplotlib.rc_context(DRAWING):
         if kind == "png":
-            from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-            canvas = FigureCanvasAgg(fig)
+            canvas = _canvas_type()(fig)
             fig.set_dpi(dpi)
             canvas.draw()
             content = _png(np.asarray(canvas.buffer_rgba()), dpi)
@@ -89,6 +91,39 @@ def save(fig, path: str | os.PathLike, *, dpi: float = DPI) -> Path:
             content = buffer.getvalue()
     write_atomically(path, content)
     return path
+
+
+@functools.cache
+def _canvas_type() -> type:
+    """Return matplotlib's Agg canvas drawing on :func:`_renderer`'s renderers (matplotlib imported on first use).
+
+    Its ``get_renderer`` serves the figure's drawing and its layout engine (a constrained layout measures
+    the texts first): one renderer, its text sizes measured once.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    class Canvas(FigureCanvasAgg):
+        def get_renderer(self):
+            return _renderer(*self.get_width_height(physical=True), self.figure.dpi)
+
+    return Canvas
+
+
+def _renderer(width: int, height: int, dpi: float):
+    """Return an Agg renderer of images of ``width`` x ``height`` px at ``dpi``: the thread's last one if of that size.
+
+    Kept for the thread's next figure (one at a time: a renderer is one image), as ``FigureCanvasAgg`` keeps
+    one for the next draw of its figure. Matplotlib caches the sizes of texts per renderer: a worker's
+    figures, most of one size, then measure a text once, not once per figure. The image is the same: the
+    canvas clears the renderer before it draws. Only the last is kept (a feature figure's holds 5 MB of
+    pixels), dropped before another is made.
+    """
+    from matplotlib.backends.backend_agg import RendererAgg
+
+    if getattr(_THREAD, "size", None) != (width, height, dpi):
+        _THREAD.renderer = None
+        _THREAD.renderer, _THREAD.size = RendererAgg(width, height, dpi), (width, height, dpi)
+    return _THREAD.renderer
 
 
 @contextlib.contextmanager
