@@ -25,10 +25,12 @@ Class colours are the same in every figure: the i-th class of the sorted class l
 
 from __future__ import annotations
 
+import functools
 import html
 import json
 import logging
 import os
+import pickle
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -574,7 +576,6 @@ def plot_features(
     uncertainties = [f"{name}_uncertainty" for name in UNCERTAINTY]
     features = features[[*FEATURES, *(name for name in uncertainties if name in features)]].load()
     region = features if roi is None else select_roi(features, roi)
-    fig, boxes, polar = _feature_layout(features.sizes["y"] / features.sizes["x"])
     panels = (
         ("R0", "R0: reflectance at normal incidence", "viridis", _RANGE, False),
         ("n", "n: scattering coefficient", "cividis", _RANGE, False),
@@ -584,8 +585,11 @@ def plot_features(
             for name in uncertainties
         ),
     )
-    for index, ((name, title, cmap, percentiles, log_scale), (image, bar)) in enumerate(zip(panels, boxes)):
-        if name not in features:
+    fig, boxes, axes, polar = _feature_layout(
+        features.sizes["y"] / features.sizes["x"], tuple(panel[0] in features for panel in panels)
+    )
+    for index, ((name, title, cmap, percentiles, log_scale), (image, _), made) in enumerate(zip(panels, boxes, axes)):
+        if made is None:
             left, bottom, width, height = image
             fig.text(
                 left + width / 2,
@@ -596,7 +600,7 @@ def plot_features(
                 fontsize=11,
             )
             continue
-        ax = fig.add_axes(image)
+        ax, bar = made
         _image(
             ax,
             features[name],
@@ -606,7 +610,7 @@ def plot_features(
             _robust_range(region[name].values, percentiles),
             log_scale=log_scale,
             coordinates=not index,  # on the first panel only: the panels share its grid
-            cax=fig.add_axes(bar),
+            cax=bar,
         )
         _roi_box(ax, roi)
     both = registered[["reflectance", "aoi"]]
@@ -648,14 +652,27 @@ def plot_features(
     return save(fig, path, dpi=_FEATURE_DPI)
 
 
-def _feature_layout(aspect: float) -> tuple:
-    """Create the feature figure for images of ``aspect`` (rows / columns), its panels' boxes and its polar axes.
+def _feature_layout(aspect: float, shown: tuple[bool, ...]) -> tuple:
+    """Return the feature figure for images of ``aspect`` (rows / columns) before its content.
 
     A fixed layout (the constrained one took 0.7 of this figure's ~2 s, and the figure is drawn for every
-    item), its axes made by ``add_axes``: two rows of three columns 5.15 in apart, each an image of at most
-    4 x 2.7 in with its colour bar right of it; the last a square, the polar plot, right of the radii's
-    labels, its legend right of it. Returns the figure, the (image, colour bar) boxes of the five images
-    (left, bottom, width, height in figure fractions, row by row) and the polar plot's Axes.
+    item), its Axes a copy of :func:`_empty_feature_figure`'s. ``shown``: whether each of the five images has
+    Axes. Returns the figure, the (image, colour bar) boxes of :func:`_feature_boxes`, the (image, colour bar)
+    Axes of each image (None where not shown) and the polar plot's Axes.
+    """
+    boxes, _, _ = _feature_boxes(aspect)
+    fig = pickle.loads(_empty_feature_figure(aspect, shown))
+    polar, *made = fig.axes
+    pairs = zip(made[::2], made[1::2])
+    return fig, boxes, [next(pairs) if show else None for show in shown], polar
+
+
+def _feature_boxes(aspect: float) -> tuple:
+    """Return the feature figure's boxes (left, bottom, width, height in figure fractions) and size (in).
+
+    Two rows of three columns 5.15 in apart, each an image of at most 4 x 2.7 in with its colour bar right
+    of it; the last a square, the polar plot, right of the radii's labels, its legend right of it. Returns the
+    (image, colour bar) boxes of the five images (row by row), the polar plot's box and the figure's size.
     """
     pitch, left, bottom, gap = 5.15, 0.8, 0.5, 0.85  # inches: columns apart, margins, between the rows
     width = min(4.0, 2.7 / aspect)
@@ -669,8 +686,26 @@ def _feature_layout(aspect: float) -> tuple:
         return x / size[0], y / size[1], w / size[0], h / size[1]
 
     boxes = [(box(x, y, width, height), box(x + width + 0.1, y, 0.14, height)) for x, y in corners]
+    return boxes, box(left + 2 * pitch + 0.45, bottom, side, side), size
+
+
+@functools.lru_cache(maxsize=8)
+def _empty_feature_figure(aspect: float, shown: tuple[bool, ...]) -> bytes:
+    """Return the feature figure with its empty Axes, pickled: each figure is a copy.
+
+    Unpickling the figure takes a quarter of the time of making its 11 Axes (most of it their ticks), and
+    the figure is drawn for every item. The Axes: the polar plot's, then each shown image's and its colour
+    bar's, in the order of the boxes of :func:`_feature_boxes`. Made with the matplotlib settings of the
+    first figure: surffin changes them only while it draws (:data:`~surffin.report.canvas.DRAWING`).
+    """
+    boxes, polar, size = _feature_boxes(aspect)
     fig = figure(*size, layout=None)
-    return fig, boxes, fig.add_axes(box(left + 2 * pitch + 0.45, bottom, side, side))
+    fig.add_axes(polar)
+    for (image, bar), show in zip(boxes, shown):
+        if show:
+            fig.add_axes(image)
+            fig.add_axes(bar)
+    return pickle.dumps(fig, pickle.HIGHEST_PROTOCOL)
 
 
 def plot_feature_space(training: xr.Dataset, path: str | os.PathLike) -> Path:
