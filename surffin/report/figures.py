@@ -95,6 +95,9 @@ _RANGE = (2, 98)
 # Resolution of the feature figure, dots per inch: its images 400 px wide. At the canvas's 120 dpi (480 px, a
 # pixel of the paper's items each) it cost 15 % more, most of it compressing those pixels.
 _FEATURE_DPI = 100
+# Ticks made ahead in the feature figure's copied Axes (:func:`_empty_feature_figure`): what the colour bars'
+# and the coordinates' locators give, about 4 to 8.
+_TICKS_AHEAD = 8
 
 
 # --- helpers ----------------------------------------------------------------------------------
@@ -695,8 +698,11 @@ def _empty_feature_figure(aspect: float, shown: tuple[bool, ...]) -> bytes:
 
     Unpickling the figure takes a quarter of the time of making its 11 Axes (most of it their ticks), and
     the figure is drawn for every item. The Axes: the polar plot's, then each shown image's and its colour
-    bar's, in the order of the boxes of :func:`_feature_boxes`. Made with the matplotlib settings of the
-    first figure: surffin changes them only while it draws (:data:`~surffin.report.canvas.DRAWING`).
+    bar's, in the order of the boxes of :func:`_feature_boxes`. The axes that show values (the colour bars'
+    and the first image's) have :data:`_TICKS_AHEAD` ticks: matplotlib makes those it lacks when it draws, at
+    about 0.5 ms each (copies of the first), and a tick's unpickling takes a seventh of that. Made with the
+    matplotlib settings of the first figure: surffin changes them only while it draws
+    (:data:`~surffin.report.canvas.DRAWING`).
     """
     boxes, polar, size = _feature_boxes(aspect)
     fig = figure(*size, layout=None)
@@ -704,7 +710,9 @@ def _empty_feature_figure(aspect: float, shown: tuple[bool, ...]) -> bytes:
     for (image, bar), show in zip(boxes, shown):
         if show:
             fig.add_axes(image)
-            fig.add_axes(bar)
+            fig.add_axes(bar).yaxis.get_major_ticks(_TICKS_AHEAD)
+    fig.axes[1].xaxis.get_major_ticks(_TICKS_AHEAD)  # the first image's: the only one with coordinates
+    fig.axes[1].yaxis.get_major_ticks(_TICKS_AHEAD)
     return pickle.dumps(fig, pickle.HIGHEST_PROTOCOL)
 
 
