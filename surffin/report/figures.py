@@ -622,10 +622,11 @@ def plot_features(
         _roi_box(ax, roi)
     both = registered[["reflectance", "aoi"]]
     both = (both if roi is None else select_roi(both, roi)).load()
+    # Each view's pixels by position: xarray's sel took about 0.1 ms a view and variable.
+    aois, reflectances = (both[name].transpose("view", ...).values for name in ("aoi", "reflectance"))
     r_max, handles = 0.0, []
     for index, view in enumerate(both["view"].values):
-        aoi = both["aoi"].sel(view=view).values.ravel()
-        reflectance = both["reflectance"].sel(view=view).values.ravel()
+        aoi, reflectance = aois[index].ravel(), reflectances[index].ravel()
         ok = np.flatnonzero(np.isfinite(aoi) & np.isfinite(reflectance))
         chosen = ok[subsample(ok.size, _MAX_POINTS // both.sizes["view"], seed=index)]
         (line,) = polar.plot(*_polar_xy(aoi[chosen], reflectance[chosen]), "o", ms=3, mew=0, alpha=0.3)
