@@ -668,8 +668,12 @@ def _feature_layout(aspect: float, shown: tuple[bool, ...]) -> tuple:
     Axes. Returns the figure, the (image, colour bar) boxes of :func:`_feature_boxes`, the (image, colour bar)
     Axes of each image (None where not shown) and the polar plot's Axes.
     """
-    boxes, _, _ = _feature_boxes(aspect)
-    fig = pickle.loads(_empty_feature_figure(aspect, shown))
+    boxes, polar_box, size = _feature_boxes(aspect)
+    fig = pickle.loads(_empty_feature_figure(shown))
+    fig.set_size_inches(size)
+    shown_boxes = [box for pair, show in zip(boxes, shown) if show for box in pair]
+    for ax, box in zip(fig.axes, [polar_box, *shown_boxes], strict=True):
+        ax.set_position(box)
     polar, *made = fig.axes
     pairs = zip(made[::2], made[1::2])
     return fig, boxes, [next(pairs) if show else None for show in shown], polar
@@ -697,19 +701,20 @@ def _feature_boxes(aspect: float) -> tuple:
     return boxes, box(left + 2 * pitch + 0.45, bottom, side, side), size
 
 
-@functools.lru_cache(maxsize=8)
-def _empty_feature_figure(aspect: float, shown: tuple[bool, ...]) -> bytes:
-    """Return the feature figure with its empty Axes, pickled: each figure is a copy.
+@functools.cache
+def _empty_feature_figure(shown: tuple[bool, ...]) -> bytes:
+    """Return the feature figure with its empty Axes, pickled: each figure is a copy, sized and its Axes placed.
 
     Unpickling the figure takes a quarter of the time of making its 11 Axes (most of it their ticks), and
-    the figure is drawn for every item. The Axes: the polar plot's, then each shown image's and its colour
-    bar's, in the order of the boxes of :func:`_feature_boxes`. The axes that show values (the colour bars'
+    the figure is drawn for every item. Made for square images: the items' grids differ a little in shape,
+    and placing the copy's Axes costs next to nothing. The Axes: the polar plot's, then each shown image's and
+    its colour bar's, in the order of the boxes of :func:`_feature_boxes`. The axes that show values (the colour bars'
     and the first image's) have :data:`_TICKS_AHEAD` ticks: matplotlib makes those it lacks when it draws, at
     about 0.5 ms each (copies of the first), and a tick's unpickling takes a seventh of that. Made with the
     matplotlib settings of the first figure: surffin changes them only while it draws
     (:data:`~surffin.report.canvas.DRAWING`).
     """
-    boxes, polar, size = _feature_boxes(aspect)
+    boxes, polar, size = _feature_boxes(1.0)
     fig = figure(*size, layout=None)
     fig.add_axes(polar)
     for (image, bar), show in zip(boxes, shown):
