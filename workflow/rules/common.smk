@@ -46,6 +46,9 @@ RESULTS_FIRST = 10
 # sensitivity analysis (no input) and the calibration and roughness figures (one store each) take a
 # core before the items' figures, rather than running alone on one at the end of a run.
 BEFORE_FIGURES = 1
+# The repeat calibration and the calibration diagnostics (one after the other, the longest chain off the
+# results' path) start before the other jobs off it, so that the run does not end with them alone on a core.
+DIAGNOSTICS_FIRST = 2
 _PLAN = []
 
 

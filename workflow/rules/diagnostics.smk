@@ -5,6 +5,7 @@ rule calibration_repeat:
         directory(f"{PROCESSED}/diagnostics/calibration-repeat.zarr"),
     log:
         f"{LOGS}/diagnostics/calibration-repeat.log",
+    priority: DIAGNOSTICS_FIRST
     threads: 1
     resources:
         mem_mb=1500,
@@ -47,6 +48,7 @@ rule calibration_diagnostics:
         ),
     log:
         f"{LOGS}/diagnostics/calibration.log",
+    priority: DIAGNOSTICS_FIRST
     threads: 1
     resources:
         mem_mb=2000,
