@@ -897,7 +897,7 @@ def _mapped_npz(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     Nothing is read but the headers; None also when the file does not hold what its directory says.
     """
     try:
-        with zipfile.ZipFile(path) as archive, open(path, "rb") as stream:
+        with open(path, "rb") as stream, zipfile.ZipFile(stream) as archive:  # the directory read, then the stream ours
             arrays = []
             for name in ("xyz.npy", "intensity.npy"):
                 member = archive.getinfo(name)
